@@ -197,12 +197,18 @@ class GeoReference:
         return geodetic_to_ecef(lat, lon, np.asarray(z_m, dtype=float) + self.origin_h_m)
 
     def grid_convergence_rad(self, x_m: float, y_m: float) -> float:
-        """Angle from true north to grid north (+y) at a net point, radians, clockwise positive.
+        """Meridian (grid) convergence at a net point, radians.
 
-        A true azimuth ``a`` appears in net XY as grid azimuth ``a - convergence``.
-        Computed numerically from the projection (1 m step north).
+        ``gamma`` is the angle from grid north (+y) to true north, counter-clockwise
+        positive (~ dlon * sin(lat) for transverse Mercator: positive east of the central
+        meridian in the northern hemisphere). Hence::
+
+            true_azimuth = grid_azimuth + gamma,   grid_azimuth = true_azimuth - gamma
+
+        Computed numerically from the projection (a ~1 m step north).
         """
         lat, lon = self.xy_to_geodetic(x_m, y_m)
         dlat = 1.0 / 6378137.0
         x2, y2 = self.geodetic_to_xy(lat + dlat, lon)
-        return float(np.arctan2(float(x2) - x_m, float(y2) - y_m))
+        # Grid azimuth of true north is atan2(dx, dy); gamma is its negative.
+        return -float(np.arctan2(float(x2) - x_m, float(y2) - y_m))

@@ -1,1 +1,1 @@
-"""v2v.io."""
+"""Output files: atomic writes, Parquet tables, summary JSON."""

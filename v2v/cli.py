@@ -1,0 +1,215 @@
+"""The ``v2v`` command line.
+
+Every user mistake ends as one line on stderr (``v2v: error: FIELD: what -- fix: how``)
+and exit status 2, never a traceback. Internal errors (bugs) do show a traceback and
+exit 1, so they can be reported.
+"""
+
+from __future__ import annotations
+
+import argparse
+import sys
+from pathlib import Path
+
+from v2v import __version__
+from v2v.errors import UserError
+
+EXIT_USER_ERROR = 2
+
+
+class _Parser(argparse.ArgumentParser):
+    def error(self, message: str):  # one line, exit 2 (argparse's own convention too)
+        self.exit(EXIT_USER_ERROR, f"v2v: error: {message} -- fix: see `{self.prog} --help`\n")
+
+
+def _add_run_options(p: argparse.ArgumentParser) -> None:
+    p.add_argument("--out", type=Path, default=None, help="run folder to write (default: runs/<scenario name>)")
+    p.add_argument("--seed", type=int, default=None, help="override the scenario's seed (drives SUMO and every sensor)")
+    p.add_argument(
+        "--set", dest="overrides", action="append", default=[], metavar="KEY=VALUE",
+        help="override a scenario field, e.g. --set clusters.0.vehicles=20 (repeatable; values are TOML)",
+    )
+    p.add_argument("--quiet", action="store_true", help="no progress bar and no table")
+
+
+def build_parser() -> argparse.ArgumentParser:
+    p = _Parser(prog="v2v", description="Multi-vehicle V2V relative-positioning simulator (SUMO + DGPS/UWB/bearing EKF).")
+    p.add_argument("--version", action="version", version=f"v2v {__version__}")
+    sub = p.add_subparsers(dest="cmd", required=True, parser_class=_Parser)
+
+    r = sub.add_parser("run", help="run a scenario file", description="Run a scenario and write its run folder.")
+    r.add_argument("scenario", type=Path, help="scenario .toml (layered over the built-in default)")
+    _add_run_options(r)
+
+    d = sub.add_parser("demo", help="run the built-in default scenario and print a short table")
+    _add_run_options(d)
+
+    n = sub.add_parser("nets", help="shipped road networks: build, list, import OpenStreetMap")
+    nsub = n.add_subparsers(dest="nets_cmd", required=True, parser_class=_Parser)
+    nb = nsub.add_parser("build", help="(re)build the shipped nets with netconvert")
+    nb.add_argument("names", nargs="*", help="nets to build (default: all)")
+    nsub.add_parser("list", help="list the shipped nets")
+    ni = nsub.add_parser("import-osm", help="turn an OpenStreetMap .osm extract into a net + buildings with heights")
+    ni.add_argument("osm", type=Path, help="the .osm file")
+    ni.add_argument("--name", required=True, help="name of the new net")
+    ni.add_argument("--out", type=Path, default=None, help="folder to write into (default: sumo_nets/<name>)")
+
+    s = sub.add_parser("scenario", help="scenario files")
+    ssub = s.add_subparsers(dest="scenario_cmd", required=True, parser_class=_Parser)
+    sc = ssub.add_parser("check", help="validate a scenario and print it resolved")
+    sc.add_argument("file", type=Path)
+    sc.add_argument("--set", dest="overrides", action="append", default=[], metavar="KEY=VALUE")
+
+    k = sub.add_parser("sky", help="satellites in view at a place and time (or a scenario's start)")
+    k.add_argument("--lat", type=float, help="latitude, degrees")
+    k.add_argument("--lon", type=float, help="longitude, degrees")
+    k.add_argument("--height", type=float, default=0.0, help="ellipsoidal height, m")
+    k.add_argument("--time", help="UTC time, ISO 8601 (e.g. 2021-04-28T19:00:00Z)")
+    k.add_argument("--scenario", type=Path, help="take place and time from a scenario's network and start_utc")
+    k.add_argument("--rinex", type=Path, help="RINEX navigation file (default: the built-in nominal constellation)")
+    k.add_argument("--mask-deg", type=float, default=10.0, help="elevation mask, degrees")
+    return p
+
+
+def _load(args) -> object:
+    from v2v.config.scenario import load_scenario
+
+    overrides = list(args.overrides)
+    if args.seed is not None:
+        overrides.append(f"seed={args.seed}")
+    return load_scenario(getattr(args, "scenario", None), overrides)
+
+
+def _cmd_run(args, demo: bool = False) -> int:
+    from v2v.run import run_scenario
+
+    scenario = _load(args)
+    out = args.out or Path("runs") / scenario.name  # type: ignore[attr-defined]
+    result = run_scenario(scenario, out, quiet=args.quiet)  # type: ignore[arg-type]
+    if not args.quiet:
+        _print_summary(result.summary, out)
+    return 0
+
+
+def _print_summary(summary: dict, out: Path) -> None:
+    print(f"run folder: {out}")
+    print(
+        f"scenario {summary['scenario']!r}  seed {summary['seed']}  simulated {summary['simulated_s']:.1f} s  "
+        f"wall {summary['wall_s']:.1f} s  ({summary['real_time_factor']}x real time)"
+    )
+    print(f"vehicles: {', '.join(summary['vehicles'])}  (leads: {', '.join(summary['leads'])})")
+    ev = {k: v for k, v in summary["event_counts"].items() if v}
+    if ev:
+        print("events: " + ", ".join(f"{k} {v}" for k, v in ev.items()))
+    table = summary.get("table")
+    if table:
+        print(table)
+    if "note" in summary:
+        print("note: " + summary["note"])
+
+
+def _cmd_nets(args) -> int:
+    from v2v import nets
+
+    if args.nets_cmd == "list":
+        for info in nets.list_nets():
+            print(f"{info.name:16s} {'built' if info.built else 'not built':10s} {info.description}")
+        return 0
+    if args.nets_cmd == "build":
+        names = args.names or [i.name for i in nets.list_nets()]
+        for name in names:
+            built = nets.build_net(name, force=True)
+            print(f"built {name}: {built.net_path}")
+        return 0
+    if args.nets_cmd == "import-osm":
+        built = nets.import_osm(args.osm, args.name, out_root=args.out)
+        print(f"imported {args.name}: {built.net_path}")
+        for rname, edges in (built.routes or {}).items():
+            print(f"  route {rname}: {len(edges)} edges")
+        return 0
+    raise AssertionError(args.nets_cmd)
+
+
+def _cmd_scenario(args) -> int:
+    from v2v.config.scenario import load_scenario
+
+    sc = load_scenario(args.file, args.overrides)
+    print(sc.to_toml())
+    print(f"# {args.file}: OK", file=sys.stderr)
+    return 0
+
+
+def _cmd_sky(args) -> int:
+    from datetime import datetime
+
+    import numpy as np
+
+    from v2v.sensors.gnss.sky import sky_view
+    from v2v.sensors.gnss.time import utc_to_gps_s
+
+    if args.scenario is not None:
+        from v2v.config.scenario import load_scenario
+        from v2v.run import resolve_network
+
+        sc = load_scenario(args.scenario)
+        net = resolve_network(sc)
+        lat, lon = net.georef.xy_to_geodetic(0.0, 0.0)
+        lat_deg, lon_deg = float(np.degrees(lat)), float(np.degrees(lon))
+        h = sc.network.origin_h_m
+        when = sc.start_utc
+    else:
+        if args.lat is None or args.lon is None or args.time is None:
+            raise UserError("give --lat, --lon and --time, or --scenario", field="sky", fix="e.g. v2v sky --lat 51.08 --lon -114.13 --time 2021-04-28T19:00:00Z")
+        if not (-90 <= args.lat <= 90 and -180 <= args.lon <= 180):
+            raise UserError("latitude/longitude out of range", field="--lat/--lon", fix="degrees, lat in [-90, 90], lon in [-180, 180]")
+        lat_deg, lon_deg, h = args.lat, args.lon, args.height
+        try:
+            when = datetime.fromisoformat(args.time.replace("Z", "+00:00"))
+        except ValueError:
+            raise UserError(f"cannot read time {args.time!r}", field="--time", fix="ISO 8601, e.g. 2021-04-28T19:00:00Z") from None
+    t_gps = utc_to_gps_s(when)
+    eph = _ephemeris(args.rinex, t_gps)
+    df = sky_view(np.radians(lat_deg), np.radians(lon_deg), h, t_gps, eph, np.radians(args.mask_deg))
+    print(f"# {lat_deg:.5f} deg, {lon_deg:.5f} deg, {h:.0f} m at {when.isoformat()} (GPS {t_gps:.0f} s); mask {args.mask_deg} deg")
+    print(df.to_string(index=False) if len(df) else "(no satellites in view)")
+    return 0
+
+
+def _ephemeris(rinex: Path | None, t_gps: float):
+    if rinex is not None:
+        from v2v.sensors.gnss.rinex import read_rinex_nav
+
+        return read_rinex_nav(rinex)
+    from v2v.sensors.gnss.constellation import NominalConstellation
+
+    return NominalConstellation(t_gps)
+
+
+def main(argv: list[str] | None = None) -> int:
+    parser = build_parser()
+    args = parser.parse_args(argv)
+    try:
+        if args.cmd == "run":
+            return _cmd_run(args)
+        if args.cmd == "demo":
+            args.scenario = None
+            if args.out is None:
+                args.out = Path("runs") / "demo"
+            return _cmd_run(args, demo=True)
+        if args.cmd == "nets":
+            return _cmd_nets(args)
+        if args.cmd == "scenario":
+            return _cmd_scenario(args)
+        if args.cmd == "sky":
+            return _cmd_sky(args)
+    except UserError as exc:
+        print(f"v2v: error: {exc.one_line()}", file=sys.stderr)
+        return EXIT_USER_ERROR
+    except KeyboardInterrupt:
+        print("v2v: interrupted; no partial run folder was kept", file=sys.stderr)
+        return 130
+    raise AssertionError(args.cmd)
+
+
+if __name__ == "__main__":
+    sys.exit(main())

@@ -1,0 +1,288 @@
+"""Scenario files: TOML, validated by pydantic, layered over the built-in default.
+
+Layering: ``v2v/config/default.toml`` < the user's scenario file < ``--set key=value``
+overrides. Tables merge key by key; lists and scalars replace. Unknown keys are
+errors (a misspelt key never silently falls back to a default). The fully resolved
+scenario is saved beside every result as ``scenario.resolved.toml``.
+
+``--set`` paths are dotted; list items are addressed by index
+(``clusters.0.vehicles=20``); values are parsed as TOML (``lanes=[0,1]``,
+``network.name="urban_canyon"``) and fall back to a plain string.
+"""
+
+from __future__ import annotations
+
+import difflib
+import tomllib
+from datetime import UTC, datetime
+from pathlib import Path
+from typing import Any
+
+import tomli_w
+from pydantic import BaseModel, ConfigDict, Field, ValidationError, field_validator, model_validator
+
+from v2v.errors import UserError
+
+DEFAULT_SCENARIO_PATH = Path(__file__).with_name("default.toml")
+
+
+class _Model(BaseModel):
+    model_config = ConfigDict(extra="forbid", frozen=True)
+
+
+class NetworkConfig(_Model):
+    name: str = ""
+    net_file: str = ""
+    polygon_files: list[str] = Field(default_factory=list)
+    route: str = "default"
+    route_edges: list[str] = Field(default_factory=list)
+    origin_h_m: float = 0.0
+    georef_lat_deg: float = Field(default=51.0775, ge=-90.0, le=90.0)
+    georef_lon_deg: float = Field(default=-114.1295, ge=-180.0, le=180.0)
+
+    @model_validator(mode="after")
+    def _one_source(self) -> NetworkConfig:
+        if not self.name and not self.net_file:
+            raise ValueError("give network.name (a sumo_nets/ name) or network.net_file")
+        return self
+
+
+class VehicleTypeConfig(_Model):
+    length_m: float = Field(gt=0.5, le=30.0)
+    width_m: float = Field(gt=0.5, le=4.0)
+    height_m: float = Field(gt=0.5, le=6.0)
+    max_speed_mps: float = Field(gt=0.0, le=70.0)
+    accel_mps2: float = Field(gt=0.0, le=10.0)
+    decel_mps2: float = Field(gt=0.0, le=12.0)
+    driver_imperfection: float = Field(default=0.5, ge=0.0, le=1.0)
+    antenna_lever_arm_m: tuple[float, float, float] = (-2.0, 0.0, 1.55)
+
+
+class ClusterConfig(_Model):
+    name: str
+    vehicles: int = Field(ge=2, le=200)
+    vehicle_type: str | list[str] = "passenger"
+    lanes: list[int] = Field(default_factory=lambda: [0], min_length=1)
+    time_gap_s: float = Field(default=2.0, gt=0.0, le=60.0)
+    lead: int = Field(default=0, ge=0)
+    depart_s: float = Field(default=0.0, ge=0.0)
+    max_separation_m: float = Field(default=300.0, gt=0.0)
+
+    @field_validator("lanes")
+    @classmethod
+    def _lanes_nonneg(cls, v: list[int]) -> list[int]:
+        if any(lane < 0 for lane in v):
+            raise ValueError("lane indices are >= 0 (0 = rightmost lane)")
+        return v
+
+    @model_validator(mode="after")
+    def _lead_in_range(self) -> ClusterConfig:
+        if self.lead >= self.vehicles:
+            raise ValueError(f"lead={self.lead} but the cluster has only {self.vehicles} vehicles (0-based index)")
+        if isinstance(self.vehicle_type, list) and len(self.vehicle_type) != self.vehicles:
+            raise ValueError("vehicle_type as a list needs one entry per vehicle")
+        return self
+
+    def type_of(self, i: int) -> str:
+        return self.vehicle_type[i] if isinstance(self.vehicle_type, list) else self.vehicle_type
+
+
+class BackgroundConfig(_Model):
+    vehicles_per_hour: float = Field(default=0.0, ge=0.0, le=20000.0)
+    truck_fraction: float = Field(default=0.2, ge=0.0, le=1.0)
+
+
+class Scenario(_Model):
+    name: str
+    seed: int = Field(ge=0, le=2**31 - 1)
+    duration_s: float = Field(gt=0.0, le=86400.0)
+    step_length_s: float = Field(gt=0.0, le=1.0)
+    start_utc: datetime
+    network: NetworkConfig
+    clusters: list[ClusterConfig] = Field(min_length=1)
+    vehicle_types: dict[str, VehicleTypeConfig]
+    background: BackgroundConfig = BackgroundConfig()
+    # Filled by the sensor and estimation layers (validated there).
+    sensors: dict[str, Any] = Field(default_factory=dict)
+    solutions: list[dict[str, Any]] = Field(default_factory=list)
+
+    @field_validator("start_utc")
+    @classmethod
+    def _utc(cls, v: datetime) -> datetime:
+        if v.tzinfo is None:
+            v = v.replace(tzinfo=UTC)
+        return v.astimezone(UTC)
+
+    @model_validator(mode="after")
+    def _check_refs(self) -> Scenario:
+        names = [c.name for c in self.clusters]
+        if len(set(names)) != len(names):
+            raise ValueError("cluster names must be unique")
+        for c in self.clusters:
+            for i in range(c.vehicles):
+                t = c.type_of(i)
+                if t not in self.vehicle_types:
+                    raise ValueError(
+                        f"cluster {c.name!r} uses vehicle_type {t!r}, which is not defined; "
+                        f"defined: {sorted(self.vehicle_types)}"
+                    )
+        return self
+
+    def to_toml(self) -> str:
+        data = self.model_dump(mode="json")
+        return tomli_w.dumps(_drop_none(data))
+
+
+def _drop_none(obj: Any) -> Any:
+    if isinstance(obj, dict):
+        return {k: _drop_none(v) for k, v in obj.items() if v is not None}
+    if isinstance(obj, list):
+        return [_drop_none(v) for v in obj]
+    return obj
+
+
+# --------------------------------------------------------------------------- layering
+
+
+def deep_merge(base: dict[str, Any], over: dict[str, Any]) -> dict[str, Any]:
+    """Tables merge recursively; everything else (lists too) is replaced by ``over``."""
+    out = dict(base)
+    for k, v in over.items():
+        if isinstance(v, dict) and isinstance(out.get(k), dict):
+            out[k] = deep_merge(out[k], v)
+        else:
+            out[k] = v
+    return out
+
+
+def _parse_value(text: str) -> Any:
+    try:
+        return tomllib.loads(f"v = {text}")["v"]
+    except tomllib.TOMLDecodeError:
+        return text
+
+
+def apply_override(data: dict[str, Any], assignment: str) -> dict[str, Any]:
+    """Apply one ``a.b.0.c=value`` override to a nested dict (returns a new dict)."""
+    if "=" not in assignment:
+        raise UserError(f"override {assignment!r} is not key=value", field="--set", fix="write e.g. --set seed=3")
+    path, text = assignment.split("=", 1)
+    keys = [k for k in path.strip().split(".") if k]
+    if not keys:
+        raise UserError(f"override {assignment!r} has an empty key", field="--set", fix="write e.g. --set seed=3")
+    value = _parse_value(text.strip())
+    import copy
+
+    root = copy.deepcopy(data)
+    node: Any = root
+    for i, k in enumerate(keys):
+        last = i == len(keys) - 1
+        if isinstance(node, list):
+            if not k.isdigit() or int(k) >= len(node):
+                raise UserError(
+                    f"no item {k!r} in list {'.'.join(keys[:i])!r} (length {len(node)})",
+                    field=f"--set {path}",
+                    fix="use a 0-based index that exists",
+                )
+            idx = int(k)
+            if last:
+                node[idx] = value
+            else:
+                node = node[idx]
+        elif isinstance(node, dict):
+            if last:
+                node[k] = value
+            else:
+                if k not in node:
+                    node[k] = {}
+                node = node[k]
+        else:
+            raise UserError(
+                f"{'.'.join(keys[:i])!r} is a value, not a table", field=f"--set {path}", fix="check the key path"
+            )
+    return root
+
+
+def _format_validation_error(err: ValidationError, data: dict[str, Any], source: str) -> UserError:
+    e = err.errors()[0]
+    loc = ".".join(str(p) for p in e["loc"])
+    if e["type"] == "extra_forbidden":
+        name = str(e["loc"][-1])
+        allowed = _allowed_keys_at(e["loc"][:-1])
+        close = difflib.get_close_matches(name, allowed, n=1)
+        fix = f"did you mean {close[0]!r}?" if close else f"allowed keys here: {', '.join(sorted(allowed))}"
+        return UserError(f"unknown key in {source}", field=loc, fix=fix)
+    if e["type"] == "missing":
+        return UserError(f"required key missing in {source}", field=loc, fix="add it (see the README scenario reference)")
+    msg = e["msg"].removeprefix("Value error, ")
+    got = e.get("input")
+    got_s = f" (got {got!r})" if not isinstance(got, dict | list) and got is not None else ""
+    return UserError(f"{msg}{got_s} in {source}", field=loc or "scenario", fix="correct the value")
+
+
+def _allowed_keys_at(loc: tuple[Any, ...]) -> list[str]:
+    """Field names allowed at a validation-error location (for 'did you mean')."""
+    model: Any = Scenario
+    skip_key = False
+    for part in loc:
+        if isinstance(part, int):
+            continue
+        if skip_key:  # the key of a dict[str, Model]
+            skip_key = False
+            continue
+        field = model.model_fields.get(part)
+        if field is None:
+            return []
+        ann = field.annotation
+        origin = getattr(ann, "__origin__", None)
+        candidates = [c for c in (ann, *getattr(ann, "__args__", ())) if isinstance(c, type) and issubclass(c, BaseModel)]
+        if not candidates:
+            return []
+        model = candidates[0]
+        skip_key = origin is dict
+    return list(model.model_fields)
+
+
+def load_default_dict() -> dict[str, Any]:
+    with DEFAULT_SCENARIO_PATH.open("rb") as f:
+        return tomllib.load(f)
+
+
+def load_scenario(path: str | Path | None = None, overrides: list[str] | tuple[str, ...] = ()) -> Scenario:
+    """Load, layer and validate a scenario. ``path=None`` gives the built-in default.
+
+    Raises :class:`UserError` (one line, naming the field) for every user mistake.
+    """
+    data = load_default_dict()
+    source = "the default scenario"
+    if path is not None:
+        p = Path(path)
+        if not p.is_file():
+            raise UserError(f"scenario file {str(p)!r} does not exist", field="SCENARIO", fix="give the path to a .toml file")
+        try:
+            with p.open("rb") as f:
+                user = tomllib.load(f)
+        except tomllib.TOMLDecodeError as exc:
+            raise UserError(f"{p}: not valid TOML ({exc})", field="SCENARIO", fix="fix the TOML syntax") from None
+        # A user's cluster list replaces the default list whole; fill each cluster from the
+        # default cluster's values so a user can write just `name` and `vehicles`.
+        if "clusters" in user and isinstance(user["clusters"], list):
+            base_cluster = data["clusters"][0]
+            user["clusters"] = [deep_merge(base_cluster, c) if isinstance(c, dict) else c for c in user["clusters"]]
+        data = deep_merge(data, user)
+        source = str(p)
+    for ov in overrides:
+        data = apply_override(data, ov)
+    if overrides:
+        source += " with --set overrides"
+    try:
+        return Scenario.model_validate(data)
+    except ValidationError as err:
+        raise _format_validation_error(err, data, source) from None
+
+
+def save_resolved(scenario: Scenario, path: Path) -> None:
+    from v2v.io.atomic import atomic_write_text
+
+    atomic_write_text(path, scenario.to_toml())
+

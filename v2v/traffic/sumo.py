@@ -1,0 +1,403 @@
+"""The SUMO boundary: the only module in v2v that imports libsumo.
+
+:class:`SumoSimulation` owns one libsumo simulation (libsumo allows one per process and
+is not thread-safe), builds the clusters, steps SUMO and returns typed
+:class:`~v2v.traffic.snapshot.TrafficStep` snapshots. SUMO's conventions stop here:
+
+* ``vehicle.getPosition`` is the **front-bumper centre** in net XY; the antenna is
+  ``front_bumper + R(azimuth) @ lever_arm`` with the lever arm in the body frame
+  (x forward, y left, z up, ISO 8855) from the front-bumper centre at road level.
+* ``vehicle.getAngle`` is **degrees clockwise from the net's +y axis** (grid north). The
+  true azimuth adds the projection's grid convergence (zero on a tangent projection's
+  central meridian, up to ~1.5 deg in a UTM zone).
+* libsumo raises ``libsumo.TraCIException`` (which does not pickle); errors that are the
+  user's fault become :class:`~v2v.errors.UserError` here, the rest become events.
+
+Cluster formation: each cluster's vehicles depart one after another from the start of
+the route, ``time_gap_s / len(lanes)`` apart, round robin over the configured lanes, at
+the maximum safe insertion speed. The simulation is warmed up until every cluster
+vehicle is on the road; ``t_s = 0`` is that moment (``warmup_s`` is reported).
+"""
+
+from __future__ import annotations
+
+import math
+import os
+from dataclasses import dataclass, field
+from pathlib import Path
+from typing import TYPE_CHECKING
+
+import numpy as np
+
+from v2v.errors import UserError
+from v2v.frames import GeoReference, geodetic_to_ecef, wrap_angle
+from v2v.traffic.snapshot import EventKind, TrafficEvent, TrafficStep, VehicleState
+
+if TYPE_CHECKING:
+    from v2v.config.scenario import Scenario
+
+_ACTIVE = False  # one simulation per process
+
+
+@dataclass(frozen=True, kw_only=True)
+class NetFiles:
+    """The files a simulation needs: the net, building/foliage polygons, the route edges."""
+
+    net_path: Path
+    poly_paths: tuple[Path, ...] = ()
+    route_edges: tuple[str, ...] = ()
+
+
+@dataclass
+class _VehicleMeta:
+    cluster: str
+    is_lead: bool
+    lever_arm_m: np.ndarray
+    length_m: float
+    width_m: float
+    height_m: float
+    lead_id: str
+    max_separation_m: float
+    prev_azimuth_rad: float | None = None
+    in_cluster: bool = True
+    lane_index: int | None = None
+
+
+@dataclass
+class TrafficStats:
+    warmup_s: float = 0.0
+    teleports: int = 0
+    collisions: int = 0
+    arrived: list[str] = field(default_factory=list)
+
+
+def sumo_binary() -> str:
+    import sumo  # eclipse-sumo wheel
+
+    return os.path.join(sumo.SUMO_HOME, "bin", "sumo")
+
+
+class SumoSimulation:
+    """Context manager owning one libsumo simulation.
+
+    Parameters
+    ----------
+    scenario : Scenario
+        Resolved scenario (clusters, vehicle types, duration, step length, seed).
+    net : NetFiles
+        Net, polygons and the route (edge ids) the clusters drive.
+    georef : GeoReference
+        Net XY -> geodetic mapping (from the net's ``<location>``).
+    seed : int
+        Passed to SUMO's ``--seed`` (also drives background-traffic draws here).
+    """
+
+    def __init__(self, scenario: Scenario, net: NetFiles, georef: GeoReference, seed: int):
+        self.scenario = scenario
+        self.net = net
+        self.georef = georef
+        self.seed = int(seed)
+        self.dt_s = float(scenario.step_length_s)
+        self.stats = TrafficStats()
+        self._meta: dict[str, _VehicleMeta] = {}
+        self._t0_sumo_s = 0.0
+        self._rng = np.random.default_rng(np.random.SeedSequence(self.seed).spawn(1)[0])
+        self._bg_counter = 0
+        self._bg_next_s = math.inf
+        self._pending_events: list[TrafficEvent] = []
+        self._traci = None
+
+    # ------------------------------------------------------------------ lifecycle
+    def __enter__(self) -> SumoSimulation:
+        global _ACTIVE
+        if _ACTIVE:
+            raise RuntimeError("libsumo allows one simulation per process; run sweeps in separate processes")
+        import libsumo
+
+        self._traci = libsumo
+        args = [
+            sumo_binary(),
+            "-n", str(self.net.net_path),
+            "--step-length", repr(self.dt_s),
+            "--seed", str(self.seed),
+            "--no-step-log", "true",
+            "--no-warnings", "true",
+            "--duration-log.disable", "true",
+            "--lanechange.duration", "3",
+            "--collision.action", "warn",
+            "--time-to-teleport", "120",
+            "--default.action-step-length", repr(self.dt_s),
+        ]
+        try:
+            libsumo.start(args)
+        except Exception as exc:  # libsumo.TraCIException / FatalTraCIError
+            raise UserError(
+                f"SUMO could not load {self.net.net_path}: {_one_line(exc)}",
+                field="network.net_file",
+                fix="give a valid SUMO .net.xml (build the shipped nets with `v2v nets build`)",
+            ) from None
+        _ACTIVE = True
+        try:
+            self._build_clusters()
+            self._warm_up()
+        except BaseException:
+            self.__exit__(None, None, None)
+            raise
+        return self
+
+    def __exit__(self, exc_type, exc, tb) -> None:
+        global _ACTIVE
+        if _ACTIVE and self._traci is not None:
+            try:
+                self._traci.close()
+            finally:
+                _ACTIVE = False
+
+    # ------------------------------------------------------------------ setup
+    def _build_clusters(self) -> None:
+        tc = self._traci
+        sc = self.scenario
+        edges = list(self.net.route_edges)
+        if not edges:
+            raise UserError("no route edges", field="network.route", fix="name a route of the net or set network.route_edges")
+        known = set(tc.edge.getIDList())
+        missing = [e for e in edges if e not in known]
+        if missing:
+            raise UserError(
+                f"route edge(s) {missing[:3]} are not in the net",
+                field="network.route_edges",
+                fix="use edge ids of this net (see `v2v nets list`)",
+            )
+        try:
+            tc.route.add("v2v_route", edges)
+        except Exception as exc:
+            raise UserError(f"SUMO rejected the route: {_one_line(exc)}", field="network.route_edges", fix="list connected edges") from None
+        # Check connectivity with SUMO's own router, edge pair by pair.
+        for a, b in zip(edges[:-1], edges[1:], strict=True):
+            r = tc.simulation.findRoute(a, b)
+            if len(r.edges) == 0 or (len(r.edges) > 2 and a != b):
+                raise UserError(
+                    f"SUMO cannot connect edge {a!r} directly to {b!r}",
+                    field="network.route_edges",
+                    fix="list consecutive, connected edges (or use a named route of the net)",
+                )
+        n_lanes_first = tc.edge.getLaneNumber(edges[0])
+        for tname, vt in sc.vehicle_types.items():
+            vid = f"v2v_{tname}"
+            tc.vehicletype.copy("DEFAULT_VEHTYPE", vid)
+            tc.vehicletype.setLength(vid, vt.length_m)
+            tc.vehicletype.setWidth(vid, vt.width_m)
+            tc.vehicletype.setHeight(vid, vt.height_m)
+            tc.vehicletype.setMaxSpeed(vid, vt.max_speed_mps)
+            tc.vehicletype.setAccel(vid, vt.accel_mps2)
+            tc.vehicletype.setDecel(vid, vt.decel_mps2)
+            tc.vehicletype.setImperfection(vid, vt.driver_imperfection)
+            tc.vehicletype.setSpeedFactor(vid, 1.0)
+            tc.vehicletype.setSpeedDeviation(vid, 0.0)
+            tc.vehicletype.setMinGap(vid, 2.0)
+            if vt.length_m > 7.0:
+                tc.vehicletype.setVehicleClass(vid, "truck")
+        for c in sc.clusters:
+            bad = [lane for lane in c.lanes if lane >= n_lanes_first]
+            if bad:
+                raise UserError(
+                    f"cluster {c.name!r} asks for lane(s) {bad} but the route's first edge has {n_lanes_first} lane(s)",
+                    field=f"clusters.{c.name}.lanes",
+                    fix=f"use lane indices 0..{n_lanes_first - 1}",
+                )
+            ids = [f"{c.name}.{i}" for i in range(c.vehicles)]
+            lead_id = ids[c.lead]
+            gap = c.time_gap_s / len(c.lanes)
+            for i, vid in enumerate(ids):
+                tname = c.type_of(i)
+                vt = sc.vehicle_types[tname]
+                lane = c.lanes[i % len(c.lanes)]
+                tc.vehicle.add(
+                    vid,
+                    "v2v_route",
+                    typeID=f"v2v_{tname}",
+                    depart=f"{c.depart_s + i * gap:.3f}",
+                    departLane=str(lane),
+                    departPos="base",
+                    departSpeed="max",
+                )
+                self._meta[vid] = _VehicleMeta(
+                    cluster=c.name,
+                    is_lead=(vid == lead_id),
+                    lever_arm_m=np.asarray(vt.antenna_lever_arm_m, dtype=float),
+                    length_m=vt.length_m,
+                    width_m=vt.width_m,
+                    height_m=vt.height_m,
+                    lead_id=lead_id,
+                    max_separation_m=c.max_separation_m,
+                )
+        if sc.background.vehicles_per_hour > 0:
+            self._bg_next_s = self._draw_bg_gap()
+
+    def _draw_bg_gap(self) -> float:
+        return float(self._rng.exponential(3600.0 / self.scenario.background.vehicles_per_hour))
+
+    def _spawn_background(self, now_s: float) -> None:
+        tc = self._traci
+        while self._bg_next_s <= now_s:
+            truck = self._rng.random() < self.scenario.background.truck_fraction
+            tname = "truck" if truck and "truck" in self.scenario.vehicle_types else "passenger"
+            if tname not in self.scenario.vehicle_types:
+                tname = next(iter(self.scenario.vehicle_types))
+            vid = f"bg.{self._bg_counter}"
+            self._bg_counter += 1
+            try:
+                tc.vehicle.add(vid, "v2v_route", typeID=f"v2v_{tname}", depart="now", departLane="random", departSpeed="max")
+            except Exception as exc:
+                self._pending_events.append(TrafficEvent(t_s=now_s - self._t0_sumo_s, kind=EventKind.TELEPORT, vehicle_id=vid, detail=f"background insert failed: {_one_line(exc)}"))
+            self._bg_next_s += self._draw_bg_gap()
+
+    def _warm_up(self) -> None:
+        """Step until every cluster vehicle has departed (t_s = 0 is then)."""
+        tc = self._traci
+        waiting = set(self._meta)
+        limit_s = max(c.depart_s + c.vehicles * c.time_gap_s for c in self.scenario.clusters) + 120.0
+        while waiting:
+            tc.simulationStep()
+            now = tc.simulation.getTime()
+            self._spawn_background(now)
+            for vid in tc.simulation.getDepartedIDList():
+                waiting.discard(vid)
+            if now > limit_s:
+                raise UserError(
+                    f"{len(waiting)} cluster vehicle(s) could not be inserted within {limit_s:.0f} s of SUMO time",
+                    field="clusters",
+                    fix="use fewer vehicles per lane, more lanes, or a longer first edge",
+                )
+        self._t0_sumo_s = tc.simulation.getTime()
+        self.stats.warmup_s = self._t0_sumo_s
+
+    # ------------------------------------------------------------------ stepping
+    @property
+    def t_s(self) -> float:
+        return self._traci.simulation.getTime() - self._t0_sumo_s
+
+    def snapshot(self) -> TrafficStep:
+        """The current truth (after the last step)."""
+        tc = self._traci
+        t = self.t_s
+        present = set(tc.vehicle.getIDList())
+        events = list(self._pending_events)
+        self._pending_events.clear()
+        states: dict[str, VehicleState] = {}
+        ids = [v for v in self._meta if v in present]
+        if not ids:
+            return TrafficStep(t_s=t, vehicles={}, events=tuple(events), background=self._background_boxes(present))
+        xy = np.array([tc.vehicle.getPosition(v) for v in ids])
+        z = np.array([tc.vehicle.getPosition3D(v)[2] for v in ids])
+        grid_az = np.radians([tc.vehicle.getAngle(v) for v in ids])
+        conv = self.georef.grid_convergence_rad(float(xy[0, 0]), float(xy[0, 1]))
+        fwd = np.stack([np.sin(grid_az), np.cos(grid_az)], axis=1)
+        left = np.stack([-np.cos(grid_az), np.sin(grid_az)], axis=1)
+        arms = np.array([self._meta[v].lever_arm_m for v in ids])
+        ant_xy = xy + fwd * arms[:, :1] + left * arms[:, 1:2]
+        ant_z = z + arms[:, 2]
+        lat, lon = self.georef.xy_to_geodetic(ant_xy[:, 0], ant_xy[:, 1])
+        h = ant_z + self.scenario.network.origin_h_m
+        ecef = geodetic_to_ecef(lat, lon, h)
+        for k, vid in enumerate(ids):
+            m = self._meta[vid]
+            az = float((grid_az[k] + conv) % (2 * math.pi))
+            speed = tc.vehicle.getSpeed(vid)
+            slope = math.radians(tc.vehicle.getSlope(vid))
+            v_h = speed * math.cos(slope)
+            vel = np.array([v_h * math.sin(az), v_h * math.cos(az), speed * math.sin(slope)])
+            yaw_rate = 0.0 if m.prev_azimuth_rad is None else float(wrap_angle(az - m.prev_azimuth_rad)) / self.dt_s
+            m.prev_azimuth_rad = az
+            lane_id = tc.vehicle.getLaneID(vid)
+            lane_index = tc.vehicle.getLaneIndex(vid)
+            if m.lane_index is not None and lane_index != m.lane_index and not lane_id.startswith(":"):
+                events.append(TrafficEvent(t_s=t, kind=EventKind.LANE_CHANGE, vehicle_id=vid, detail=f"{m.lane_index}->{lane_index}"))
+            if not lane_id.startswith(":"):
+                m.lane_index = lane_index
+            states[vid] = VehicleState(
+                vehicle_id=vid,
+                cluster=m.cluster,
+                is_lead=m.is_lead,
+                t_s=t,
+                xyz_m=np.array([ant_xy[k, 0], ant_xy[k, 1], ant_z[k]]),
+                lat_rad=float(lat[k]),
+                lon_rad=float(lon[k]),
+                h_m=float(h[k]),
+                ecef_m=ecef[k],
+                vel_enu_mps=vel,
+                speed_mps=speed,
+                accel_mps2=tc.vehicle.getAcceleration(vid),
+                azimuth_rad=az,
+                yaw_rate_rps=yaw_rate,
+                front_bumper_xy_m=xy[k].copy(),
+                edge_id=tc.vehicle.getRoadID(vid),
+                lane_id=lane_id,
+                lane_index=lane_index,
+                lane_width_m=tc.lane.getWidth(lane_id) if lane_id else 3.2,
+                lateral_offset_m=tc.vehicle.getLateralLanePosition(vid),
+                length_m=m.length_m,
+                width_m=m.width_m,
+                height_m=m.height_m,
+            )
+        # Cluster membership by separation from the lead.
+        for vid, st in states.items():
+            m = self._meta[vid]
+            lead = states.get(m.lead_id)
+            if lead is None or vid == m.lead_id:
+                continue
+            sep = float(np.linalg.norm(st.ecef_m - lead.ecef_m))
+            inside = sep <= m.max_separation_m
+            if m.in_cluster and not inside:
+                events.append(TrafficEvent(t_s=t, kind=EventKind.LEFT_CLUSTER, vehicle_id=vid, detail=f"{sep:.0f} m from {m.lead_id}"))
+            elif not m.in_cluster and inside:
+                events.append(TrafficEvent(t_s=t, kind=EventKind.REJOINED_CLUSTER, vehicle_id=vid, detail=f"{sep:.0f} m from {m.lead_id}"))
+            m.in_cluster = inside
+        return TrafficStep(t_s=t, vehicles=states, events=tuple(events), background=self._background_boxes(present))
+
+    def _background_boxes(self, present: set[str]) -> np.ndarray:
+        tc = self._traci
+        rows = []
+        for vid in present:
+            if vid in self._meta:
+                continue
+            x, y = tc.vehicle.getPosition(vid)
+            a = math.radians(tc.vehicle.getAngle(vid))
+            length = tc.vehicle.getLength(vid)
+            # getPosition is the front bumper: the box centre is half a length behind.
+            rows.append((x - 0.5 * length * math.sin(a), y - 0.5 * length * math.cos(a), a, length, tc.vehicle.getWidth(vid), tc.vehicle.getHeight(vid)))
+        rows.sort()
+        return np.array(rows, dtype=float).reshape(-1, 6)
+
+    def step(self) -> TrafficStep:
+        """Advance SUMO by one step and return the truth snapshot."""
+        tc = self._traci
+        tc.simulationStep()
+        now = tc.simulation.getTime()
+        self._spawn_background(now)
+        t = now - self._t0_sumo_s
+        for vid in tc.simulation.getStartingTeleportIDList():
+            if vid in self._meta:
+                self.stats.teleports += 1
+                self._pending_events.append(TrafficEvent(t_s=t, kind=EventKind.TELEPORT, vehicle_id=vid, detail="SUMO teleported the vehicle (jam/deadlock)"))
+        for vid in tc.simulation.getCollidingVehiclesIDList():
+            if vid in self._meta:
+                self.stats.collisions += 1
+                self._pending_events.append(TrafficEvent(t_s=t, kind=EventKind.COLLISION, vehicle_id=vid))
+        for vid in tc.simulation.getArrivedIDList():
+            if vid in self._meta:
+                self.stats.arrived.append(vid)
+                self._pending_events.append(TrafficEvent(t_s=t, kind=EventKind.ARRIVED, vehicle_id=vid, detail="reached the end of its route"))
+        return self.snapshot()
+
+    def cluster_vehicle_ids(self) -> list[str]:
+        return list(self._meta)
+
+    def lane_shapes(self) -> dict[str, np.ndarray]:
+        """Centre-line polylines (net XY) of every non-internal lane, for metrics and replay."""
+        tc = self._traci
+        return {lid: np.asarray(tc.lane.getShape(lid), dtype=float) for lid in tc.lane.getIDList() if not lid.startswith(":")}
+
+
+def _one_line(exc: BaseException) -> str:
+    return " ".join(str(exc).split())[:300]
