@@ -1,0 +1,55 @@
+"""Metrics: lead-frame errors and sigmas, statistics, chi-square bands."""
+
+from __future__ import annotations
+
+import numpy as np
+import pytest
+
+from v2v.metrics.errors import chi2_band, error_statistics, lead_frame_errors, lead_frame_sigmas, nees
+
+
+def test_errors_in_lead_frame_signs():
+    # Lead heading north-east (45 deg). Estimate 1 m too far along the heading and 0.5 m to the left.
+    a = np.radians(45.0)
+    fwd = np.array([np.sin(a), np.cos(a), 0.0])
+    left = np.array([-np.cos(a), np.sin(a), 0.0])
+    truth = np.array([10.0, 20.0, 0.3])
+    est = truth + 1.0 * fwd + 0.5 * left + np.array([0, 0, -0.2])
+    np.testing.assert_allclose(lead_frame_errors(est, truth, a), [1.0, 0.5, -0.2], atol=1e-12)
+
+
+def test_sigmas_rotate_covariance():
+    # Position covariance with 4 m^2 east, 1 m^2 north: for an east-heading lead, along=2 m, across=1 m.
+    p = np.diag([4.0, 1.0, 9.0])
+    np.testing.assert_allclose(lead_frame_sigmas(p, np.pi / 2), [2.0, 1.0, 3.0], atol=1e-12)
+    np.testing.assert_allclose(lead_frame_sigmas(p, 0.0), [1.0, 2.0, 3.0], atol=1e-12)
+
+
+def test_statistics_of_known_sample():
+    s = error_statistics([1.0, -1.0, 3.0, -3.0])
+    assert s["mean"] == 0.0
+    assert s["rms"] == pytest.approx(np.sqrt(5.0))
+    assert s["std"] == pytest.approx(np.sqrt(20.0 / 3.0))
+    assert s["max_abs"] == 3.0
+    assert error_statistics([np.nan])["n"] == 0
+
+
+def test_chi2_band_textbook_values():
+    # chi-square(3): 2.5 % = 0.2158, 97.5 % = 9.348 (standard tables).
+    lo, hi = chi2_band(3)
+    assert lo == pytest.approx(0.2158, abs=1e-4) and hi == pytest.approx(9.348, abs=1e-3)
+    # Average of 50 runs of chi2(3) is chi2(150)/50. Independent check: the Wilson-Hilferty
+    # cube approximation, accurate to ~1e-3 relative at 150 dof.
+    lo, hi = chi2_band(3, 50)
+    k, z = 150, 1.959964
+    wh = [k * (1 - 2 / (9 * k) + s * z * np.sqrt(2 / (9 * k))) ** 3 / 50 for s in (-1, 1)]
+    assert lo == pytest.approx(wh[0], rel=2e-3) and hi == pytest.approx(wh[1], rel=2e-3)
+
+
+def test_nees_of_consistent_gaussian_is_chi2():
+    rng = np.random.default_rng(1)
+    p = np.array([[2.0, 0.3, 0.0], [0.3, 1.0, 0.1], [0.0, 0.1, 0.5]])
+    l_chol = np.linalg.cholesky(p)
+    vals = [nees(l_chol @ rng.standard_normal(3), p) for _ in range(4000)]
+    # mean of 4000 chi2(3) samples: sd = sqrt(6/4000) = 0.039; 4 sigma -> 0.15 (false failure ~6e-5)
+    assert abs(np.mean(vals) - 3.0) < 0.16
