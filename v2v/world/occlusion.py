@@ -1,0 +1,652 @@
+"""Line-of-sight geometry shared by every radio link and satellite ray.
+
+One :class:`OcclusionGeometry` is built per world (buildings + foliage from
+:mod:`v2v.world.buildings`) and answers two questions, vectorized:
+
+* :meth:`OcclusionGeometry.sky`: for an antenna and a set of satellite directions,
+  which rays a building blocks, how much canopy each ray crosses, and the excess path
+  of the shortest wall echo for the blocked ones (the echo-only NLOS signal of
+  MacGougan (2009) section 3.5.1, fig. 3.3);
+* :meth:`OcclusionGeometry.links`: for vehicle-to-vehicle segments, whether a building
+  or a vehicle body blocks them, where, and the excess path of the shortest single-bounce
+  wall reflection (the "first detectable reflection" a UWB radio measures under NLOS,
+  MacGougan (2009) sections 2.8 and 2.11.3).
+
+Geometry model
+--------------
+Net XY metres plus height ``z`` above the ground (z = 0). A building is its footprint
+extruded from the ground to its height (flat roof); a foliage area is its footprint
+extruded from the ground to the canopy top; a vehicle is a box on the ground. Walls are
+the footprint edges, footprints counter-clockwise, so each wall's outward normal is its
+direction vector turned 90 deg clockwise: ``n = (e_y, -e_x) / |e|``.
+
+Blocking. A straight 3-D segment from ``p0`` to ``p1`` with height
+``z(t) = z0 + t (z1 - z0)`` is blocked by a building when it is inside the building
+volume somewhere. Between crossings of the footprint boundary ``z`` is linear, so it
+suffices to test (a) every wall crossing: blocked if ``z(t_c) < h``, and (b) an end
+point inside the footprint below the roof. The first entry into the volume is the
+smallest of: a blocking wall crossing, ``t = 0`` when ``p0`` is inside, and the roof
+crossing ``t_r = (h - z0) / (z1 - z0)`` when the segment descends through the roof
+inside the footprint. Grazing a wall (segment parallel to it) does not block.
+
+Sky ray at grid azimuth ``az`` (clockwise from +y) and elevation ``el``: horizontal
+direction ``u = (sin az, cos az)``, height ``z(d) = z_a + d tan(el)`` at horizontal
+distance ``d``; it is the segment above cut at ``d = max_dist_m``.
+
+Specular reflection (image method). Mirroring a point across the vertical plane of a
+wall keeps its height. Link: the image of ``p1`` is ``p1' = p1 - 2 delta1 n`` with
+``delta_i = (p_i - a) . n`` (``a`` a wall vertex); the reflected path has length
+``|p1' - p0|`` and meets the wall at fraction ``f = delta0 / (delta0 + delta1)`` of the
+way from ``p0``. Sky echo: a plane wave from unit direction
+``s = (cos el sin az, cos el cos az, sin el)`` reflected by a wall at perpendicular
+distance ``d_w`` in front of the antenna arrives with excess path
+``2 d_w (s . n) = 2 d_w cos(el) cos(az - az_n)`` (``az_n`` the azimuth of ``n``), from
+the reflection point ``R = x_a + tau (s - 2 (s . n) n)``, ``tau = d_w / (s . n)``. A
+reflection counts when both the antenna(s) are in front of the wall (``delta > 0``),
+the wave comes from the front (``s . n > 0``), ``R`` lies on the wall segment between
+the ground and the wall top, and both legs of the reflected path are free of buildings
+(for the echo: ``R`` to the antenna, and ``R`` toward the satellite). Vehicles are not
+tested on reflected legs.
+
+Foliage. The horizontal length of a ray inside a canopy polygon up to horizontal
+distance ``D`` is computed without sorting crossings, from the winding number:
+``integral_0^D w(d) dd = w(0) D + sum_entries (D - d_i) - sum_exits (D - d_j)`` with
+crossings beyond ``D`` contributing nothing. ``D = min(max_dist, (h - z_a) / tan(el))``
+is where the ray rises above the canopy. The slant length is the horizontal one over
+``cos(el)``. Overlapping foliage polygons add up (a tree inside a forest polygon counts
+twice).
+"""
+
+from __future__ import annotations
+
+from dataclasses import dataclass
+
+import numpy as np
+import shapely
+from numpy.typing import ArrayLike, NDArray
+
+from v2v.world.buildings import World
+
+FloatArray = NDArray[np.float64]
+
+#: Crossings this close (metres, horizontal) to a reflection point are the reflecting
+#: wall itself (or its neighbour at a corner) and are not counted as blocking the
+#: reflected legs. Far above float rounding of the reflection point (~1e-12 m at 1 km)
+#: and far below any wall length that matters.
+_REFLECTION_POINT_TOL_M = 1e-6
+#: Leg checks of candidate reflections are done for the best few per link/ray first.
+_RANK_WINDOWS = (0, 4, 16, 64, np.iinfo(np.int64).max)
+
+
+@dataclass(frozen=True, kw_only=True)
+class SkyResult:
+    """Per-ray results of :meth:`OcclusionGeometry.sky`, arrays of shape (n,).
+
+    ``foliage_path_m`` is the slant length inside canopy volumes, ``foliage_loss_db`` that
+    length weighted by each area's specific attenuation, ``echo_excess_m`` the excess path
+    of the shortest valid wall echo of a blocked ray (NaN when unblocked or none).
+    """
+
+    blocked: NDArray[np.bool_]
+    blocker_id: NDArray[np.str_]
+    foliage_path_m: FloatArray
+    foliage_loss_db: FloatArray
+    echo_excess_m: FloatArray
+
+
+@dataclass(frozen=True, kw_only=True)
+class LinkResult:
+    """Per-link results of :meth:`OcclusionGeometry.links`, arrays of shape (m,).
+
+    ``blocker_kind`` is ``""``, ``"building"`` or ``"vehicle"``; ``blocker_id`` the building
+    id or the vehicle box row index as a string; ``hit_distance_m`` the 3-D distance from
+    ``p0`` to the first entry into a blocker (NaN if unblocked); ``reflection_excess_m`` the
+    shortest single-bounce wall reflection path minus the direct distance (NaN if unblocked
+    or none within the search limit).
+    """
+
+    blocked: NDArray[np.bool_]
+    blocker_kind: NDArray[np.str_]
+    blocker_id: NDArray[np.str_]
+    hit_distance_m: FloatArray
+    reflection_excess_m: FloatArray
+
+
+def _ccw(footprint_xy_m: ArrayLike) -> FloatArray:
+    """Footprint vertices counter-clockwise (positive shoelace area), so normals point out."""
+    xy = np.asarray(footprint_xy_m, dtype=float)
+    area2 = np.sum(xy[:, 0] * np.roll(xy[:, 1], -1) - np.roll(xy[:, 0], -1) * xy[:, 1])
+    return xy[::-1] if area2 < 0.0 else xy
+
+
+def _cross(a: FloatArray, b: FloatArray) -> FloatArray:
+    return a[..., 0] * b[..., 1] - a[..., 1] * b[..., 0]
+
+
+def _group_min(group: NDArray[np.int64], value: FloatArray, n: int) -> tuple[FloatArray, NDArray[np.int64]]:
+    """Per group: minimum value (inf if empty) and the index of the element holding it (-1)."""
+    best = np.full(n, np.inf)
+    arg = np.full(n, -1, dtype=np.int64)
+    if group.size:
+        order = np.lexsort((value, group))
+        g = group[order]
+        first = np.ones(g.size, dtype=bool)
+        first[1:] = g[1:] != g[:-1]
+        best[g[first]] = value[order[first]]
+        arg[g[first]] = order[first]
+    return best, arg
+
+
+def _rank_in_group(
+    group: NDArray[np.int64], value: FloatArray
+) -> tuple[NDArray[np.int64], NDArray[np.int64]]:
+    """Order by (group, value) and each element's rank within its group (in that order)."""
+    order = np.lexsort((value, group))
+    g = group[order]
+    starts = np.ones(g.size, dtype=bool)
+    starts[1:] = g[1:] != g[:-1]
+    start_pos = np.maximum.accumulate(np.where(starts, np.arange(g.size), 0))
+    return order, np.arange(g.size) - start_pos
+
+
+def _query_pairs(tree: shapely.STRtree, geoms, **kw) -> tuple[NDArray[np.int64], NDArray[np.int64]]:
+    res = np.asarray(tree.query(geoms, **kw)).reshape(2, -1)
+    return res[0].astype(np.int64), res[1].astype(np.int64)
+
+
+class OcclusionGeometry:
+    """Cached wall/footprint arrays and spatial indexes of one :class:`World`.
+
+    Parameters
+    ----------
+    world : World
+        Buildings and foliage (net XY metres).
+    max_reflection_excess_m : float
+        Reflections whose excess path exceeds this are not searched for (links). The
+        search radius around a link of horizontal length ``L`` follows from the ellipse
+        of constant path ``L + E``: walls farther than ``sqrt(E (E + 2L)) / 2`` from the
+        segment cannot give an excess below ``E``.
+    """
+
+    def __init__(self, world: World, *, max_reflection_excess_m: float = 100.0):
+        self.world = world
+        self.max_reflection_excess_m = float(max_reflection_excess_m)
+        bl = world.buildings
+        self._b_ids = np.array([b.id for b in bl], dtype=str) if bl else np.array([], dtype=str)
+        self._b_h = np.array([b.height_m for b in bl], dtype=float)
+        wa, wb, wbld = [], [], []
+        for i, b in enumerate(bl):
+            xy = _ccw(b.footprint_xy_m)
+            wa.append(xy)
+            wb.append(np.roll(xy, -1, axis=0))
+            wbld.append(np.full(len(xy), i, dtype=np.int64))
+        self._wa = np.concatenate(wa) if wa else np.zeros((0, 2))
+        self._wb = np.concatenate(wb) if wb else np.zeros((0, 2))
+        self._w_bld = np.concatenate(wbld) if wbld else np.zeros(0, dtype=np.int64)
+        self._we = self._wb - self._wa
+        self._w_len = np.hypot(self._we[:, 0], self._we[:, 1])
+        keep = self._w_len > 0.0
+        self._wa, self._wb, self._w_bld, self._we, self._w_len = (
+            self._wa[keep],
+            self._wb[keep],
+            self._w_bld[keep],
+            self._we[keep],
+            self._w_len[keep],
+        )
+        self._w_h = self._b_h[self._w_bld] if self._w_bld.size else np.zeros(0)
+        self._h_max = float(self._b_h.max()) if self._b_h.size else 0.0
+        self._w_dir = self._we / self._w_len[:, None] if self._w_len.size else np.zeros((0, 2))
+        self._w_n = (
+            np.column_stack([self._w_dir[:, 1], -self._w_dir[:, 0]]) if self._w_len.size else np.zeros((0, 2))
+        )
+        self._wall_tree = shapely.STRtree(shapely.linestrings(np.stack([self._wa, self._wb], axis=1)))
+        self._b_polys = np.array(
+            [shapely.make_valid(shapely.Polygon(b.footprint_xy_m)) for b in bl], dtype=object
+        )
+        shapely.prepare(self._b_polys)
+        self._b_tree = shapely.STRtree(self._b_polys)
+
+        fl = world.foliage
+        self._f_h = np.array([f.height_m for f in fl], dtype=float)
+        self._f_att = np.array([f.attenuation_db_per_m for f in fl], dtype=float)
+        fa, fb, fp = [], [], []
+        for i, f in enumerate(fl):
+            xy = _ccw(f.footprint_xy_m)
+            fa.append(xy)
+            fb.append(np.roll(xy, -1, axis=0))
+            fp.append(np.full(len(xy), i, dtype=np.int64))
+        self._fa = np.concatenate(fa) if fa else np.zeros((0, 2))
+        self._fe = (np.concatenate(fb) if fb else np.zeros((0, 2))) - self._fa
+        self._f_poly = np.concatenate(fp) if fp else np.zeros(0, dtype=np.int64)
+        self._fol_edge_tree = shapely.STRtree(
+            shapely.linestrings(np.stack([self._fa, self._fa + self._fe], axis=1))
+        )
+        self._f_polys = np.array(
+            [shapely.make_valid(shapely.Polygon(f.footprint_xy_m)) for f in fl], dtype=object
+        )
+        self._f_tree = shapely.STRtree(self._f_polys)
+
+    # ------------------------------------------------------------------ buildings
+    def _building_hits(
+        self,
+        p0: FloatArray,
+        p1: FloatArray,
+        *,
+        skip_start_m: float = 0.0,
+        skip_end_m: float = 0.0,
+        check_start_inside: bool = True,
+        check_end_inside: bool = True,
+    ) -> tuple[FloatArray, NDArray[np.int64]]:
+        """First entry (segment parameter t in [0, 1], inf if none) of segments into buildings.
+
+        Crossings within ``skip_start_m`` / ``skip_end_m`` (horizontal) of ``p0`` / ``p1``
+        are ignored (used for legs starting or ending on a reflecting wall).
+        """
+        k = len(p0)
+        t_cand: list[FloatArray] = []
+        g_cand: list[NDArray[np.int64]] = []
+        b_cand: list[NDArray[np.int64]] = []
+        if k == 0 or self._w_len.size == 0:
+            return np.full(k, np.inf), np.full(k, -1, dtype=np.int64)
+        d = p1[:, :2] - p0[:, :2]
+        dz = p1[:, 2] - p0[:, 2]
+        hlen = np.hypot(d[:, 0], d[:, 1])
+        # Only the part of each segment below the tallest roof can hit a wall: query the
+        # index with that sub-segment [ta, tb] (crossings elsewhere have z >= every h).
+        with np.errstate(divide="ignore", invalid="ignore"):
+            t_top = (self._h_max - p0[:, 2]) / dz
+        ta = np.where(dz < 0.0, np.clip(t_top, 0.0, 1.0), 0.0)
+        tb = np.where(dz > 0.0, np.clip(t_top, 0.0, 1.0), 1.0)
+        below = np.where(dz == 0.0, p0[:, 2] < self._h_max, ta < tb)
+        q = np.flatnonzero(below)
+        qa = p0[q, :2] + ta[q, None] * d[q]
+        qb = p0[q, :2] + tb[q, None] * d[q]
+        si, wi = _query_pairs(
+            self._wall_tree, shapely.linestrings(np.stack([qa, qb], axis=1)), predicate="intersects"
+        )
+        si = q[si]
+        roof_g: list[NDArray[np.int64]] = []
+        roof_b: list[NDArray[np.int64]] = []
+        if si.size:
+            ds = d[si]
+            e = self._we[wi]
+            ap = self._wa[wi] - p0[si, :2]
+            den = _cross(ds, e)
+            ok = np.abs(den) > 1e-12 * hlen[si] * self._w_len[wi]
+            with np.errstate(divide="ignore", invalid="ignore"):
+                t = np.clip(_cross(ap, e) / den, 0.0, 1.0)
+            z = p0[si, 2] + t * dz[si]
+            hw = self._w_h[wi]
+            ok &= z < hw
+            if skip_start_m > 0.0:
+                ok &= t * hlen[si] >= skip_start_m
+            if skip_end_m > 0.0:
+                ok &= (1.0 - t) * hlen[si] >= skip_end_m
+            t_cand.append(t[ok])
+            g_cand.append(si[ok])
+            b_cand.append(self._w_bld[wi[ok]])
+            roof_g.append(si[ok])
+            roof_b.append(self._w_bld[wi[ok]])
+        if check_start_inside:
+            pi, bi = _query_pairs(self._b_tree, shapely.points(p0[:, :2]), predicate="within")
+            ok = p0[pi, 2] < self._b_h[bi]
+            t_cand.append(np.zeros(int(ok.sum())))
+            g_cand.append(pi[ok])
+            b_cand.append(bi[ok])
+        if check_end_inside:
+            pi, bi = _query_pairs(self._b_tree, shapely.points(p1[:, :2]), predicate="within")
+            ok = p1[pi, 2] < self._b_h[bi]
+            roof_g.append(pi[ok])
+            roof_b.append(bi[ok])
+        if roof_g:
+            rg = np.concatenate(roof_g)
+            rb = np.concatenate(roof_b)
+            hb = self._b_h[rb]
+            desc = (p0[rg, 2] > hb) & (p1[rg, 2] < hb)
+            rg, rb, hb = rg[desc], rb[desc], hb[desc]
+            if rg.size:
+                tr = (hb - p0[rg, 2]) / dz[rg]
+                xr = p0[rg, :2] + tr[:, None] * d[rg]
+                inside = shapely.contains_xy(self._b_polys[rb], xr[:, 0], xr[:, 1])
+                if skip_start_m > 0.0:
+                    inside &= tr * hlen[rg] >= skip_start_m
+                if skip_end_m > 0.0:
+                    inside &= (1.0 - tr) * hlen[rg] >= skip_end_m
+                t_cand.append(tr[inside])
+                g_cand.append(rg[inside])
+                b_cand.append(rb[inside])
+        if not t_cand:
+            return np.full(k, np.inf), np.full(k, -1, dtype=np.int64)
+        t_all = np.concatenate(t_cand)
+        best, arg = _group_min(np.concatenate(g_cand), t_all, k)
+        b_all = np.concatenate(b_cand)
+        return best, np.where(arg >= 0, b_all[np.maximum(arg, 0)] if b_all.size else -1, -1)
+
+    def _legs_clear(self, a: FloatArray, r: FloatArray, b: FloatArray) -> NDArray[np.bool_]:
+        """Both legs a->r and r->b free of buildings; r lies on the reflecting wall."""
+        t1, _ = self._building_hits(a, r, skip_end_m=_REFLECTION_POINT_TOL_M, check_end_inside=False)
+        t2, _ = self._building_hits(r, b, skip_start_m=_REFLECTION_POINT_TOL_M, check_start_inside=False)
+        return ~np.isfinite(t1) & ~np.isfinite(t2)
+
+    def _best_reflection(
+        self,
+        group: NDArray[np.int64],
+        excess: FloatArray,
+        a: FloatArray,
+        r: FloatArray,
+        b: FloatArray,
+        n: int,
+    ) -> FloatArray:
+        """Smallest excess per group among candidates whose legs are clear (NaN if none).
+
+        Candidates are leg-checked best-first in rank windows, so a group's first window
+        that holds a clear candidate gives its global minimum.
+        """
+        out = np.full(n, np.nan)
+        if group.size == 0:
+            return out
+        order, rank = _rank_in_group(group, excess)
+        done = np.zeros(n, dtype=bool)
+        for lo, hi in zip(_RANK_WINDOWS[:-1], _RANK_WINDOWS[1:], strict=True):
+            sel = order[(rank >= lo) & (rank < hi)]
+            sel = sel[~done[group[sel]]]
+            if sel.size == 0:
+                continue
+            clear = self._legs_clear(a[sel], r[sel], b[sel])
+            best, _ = _group_min(group[sel][clear], excess[sel][clear], n)
+            found = np.isfinite(best)
+            out[found] = best[found]
+            done |= found
+        return out
+
+    # ------------------------------------------------------------------ sky
+    def sky(
+        self,
+        antenna_xyz_m: ArrayLike,
+        azimuth_grid_rad: ArrayLike,
+        elevation_rad: ArrayLike,
+        max_dist_m: float = 500.0,
+    ) -> SkyResult:
+        """Building blocking, canopy path and wall echo for satellite rays from one antenna.
+
+        Parameters
+        ----------
+        antenna_xyz_m : (3,)
+            Antenna in net XY metres and height above ground.
+        azimuth_grid_rad, elevation_rad : (n,)
+            Ray directions: grid azimuth (clockwise from +y) and elevation, radians.
+        max_dist_m : float
+            Horizontal distance beyond which nothing is tested.
+
+        Returns
+        -------
+        SkyResult
+            ``blocked`` when the ray enters a footprint at horizontal distance ``d`` where
+            the building is taller than ``z_a + d tan(el)``; ``echo_excess_m`` the smallest
+            ``2 d_w cos(el) cos(az - az_n)`` over valid wall echoes (see module docstring).
+        """
+        xa = np.asarray(antenna_xyz_m, dtype=float).reshape(3)
+        az = np.atleast_1d(np.asarray(azimuth_grid_rad, dtype=float))
+        el = np.atleast_1d(np.asarray(elevation_rad, dtype=float))
+        az, el = np.broadcast_arrays(az, el)
+        n = az.size
+        el_c = np.clip(el, -np.pi / 2 + 1e-9, np.pi / 2 - 1e-9)
+        u = np.column_stack([np.sin(az), np.cos(az)])
+        tan_el = np.tan(el_c)
+        cos_el = np.cos(el_c)
+        p0 = np.broadcast_to(xa, (n, 3))
+        p1 = np.column_stack([xa[:2] + max_dist_m * u, xa[2] + max_dist_m * tan_el])
+
+        t_hit, b_hit = self._building_hits(p0, p1)
+        blocked = np.isfinite(t_hit)
+        blocker_id = np.where(blocked, self._b_ids[np.maximum(b_hit, 0)] if self._b_ids.size else "", "")
+
+        path_h, loss_h = self._foliage_horizontal(xa, u, tan_el, max_dist_m)
+        foliage_path_m = path_h / cos_el
+        foliage_loss_db = loss_h / cos_el
+
+        echo = np.full(n, np.nan)
+        if blocked.any() and self._w_len.size:
+            echo = self._sky_echo(xa, az, el_c, blocked, max_dist_m)
+        return SkyResult(
+            blocked=blocked,
+            blocker_id=blocker_id.astype(str),
+            foliage_path_m=foliage_path_m,
+            foliage_loss_db=foliage_loss_db,
+            echo_excess_m=echo,
+        )
+
+    def _foliage_horizontal(
+        self, xa: FloatArray, u: FloatArray, tan_el: FloatArray, max_dist_m: float
+    ) -> tuple[FloatArray, FloatArray]:
+        """Horizontal length (and length x dB/m) of each ray inside canopy volumes."""
+        n = len(u)
+        path = np.zeros(n)
+        loss = np.zeros(n)
+        if self._f_h.size == 0:
+            return path, loss
+
+        def reach(ray: NDArray[np.int64], poly: NDArray[np.int64]) -> FloatArray:
+            h = self._f_h[poly]
+            te = tan_el[ray]
+            with np.errstate(divide="ignore", invalid="ignore"):
+                d_top = np.where(te > 0.0, (h - xa[2]) / te, np.inf)
+            return np.where(xa[2] >= h, 0.0, np.minimum(max_dist_m, d_top))
+
+        # Crossings beyond the tallest canopy's reach contribute nothing: query only up to it.
+        d_q = reach(np.arange(n), np.full(n, int(np.argmax(self._f_h))))
+        lines = shapely.linestrings(
+            np.stack([np.broadcast_to(xa[:2], (n, 2)), xa[:2] + d_q[:, None] * u], axis=1)
+        )
+        ri, ei = _query_pairs(self._fol_edge_tree, lines, predicate="intersects")
+        if ri.size:
+            a_rel = self._fa[ei] - xa[:2]
+            e = self._fe[ei]
+            ur = u[ri]
+            side_a = _cross(ur, a_rel)
+            side_b = _cross(ur, a_rel + e)
+            crosses = (side_a >= 0.0) != (side_b >= 0.0)
+            den = _cross(ur, e)
+            with np.errstate(divide="ignore", invalid="ignore"):
+                t = _cross(a_rel, e) / den
+            crosses &= t >= 0.0
+            ri, ei, t, den = ri[crosses], ei[crosses], t[crosses], den[crosses]
+            poly = self._f_poly[ei]
+            dmax = reach(ri, poly)
+            # Entering a CCW polygon: the ray crosses the edge from its right to its left,
+            # cross(e, u) > 0, i.e. cross(u, e) < 0.
+            sign = np.where(den < 0.0, 1.0, -1.0)
+            contrib = sign * (dmax - np.minimum(t, dmax))
+            path += np.bincount(ri, weights=contrib, minlength=n)
+            loss += np.bincount(ri, weights=contrib * self._f_att[poly], minlength=n)
+        inside = np.asarray(self._f_tree.query(shapely.Point(xa[:2]), predicate="within"), dtype=np.int64)
+        for p in inside:
+            dm = reach(np.arange(n), np.full(n, p))
+            path += dm
+            loss += dm * self._f_att[p]
+        return np.maximum(path, 0.0), np.maximum(loss, 0.0)
+
+    def _sky_echo(
+        self, xa: FloatArray, az: FloatArray, el: FloatArray, blocked: NDArray[np.bool_], max_dist_m: float
+    ) -> FloatArray:
+        n = az.size
+        rays = np.flatnonzero(blocked)
+        ce, se = np.cos(el[rays]), np.sin(el[rays])
+        tan_el = se / ce
+        # The reflection point is at horizontal distance tau cos(el) >= d_w from the antenna
+        # and height z_a + tau sin(el) < h_w: only walls within (h_max - z_a) / tan(el).
+        radius = min(max_dist_m, float(np.max((self._h_max - xa[2]) / np.maximum(tan_el, 1e-12))))
+        # Square window (cheap superset of the disc); the tests below are exact.
+        window = shapely.box(xa[0] - radius, xa[1] - radius, xa[0] + radius, xa[1] + radius)
+        wi = np.asarray(self._wall_tree.query(window), dtype=np.int64)
+        delta = np.einsum("ij,ij->i", xa[:2] - self._wa[wi], self._w_n[wi])
+        keep = (delta > 0.0) & (self._w_h[wi] > xa[2])
+        wi, delta = wi[keep], delta[keep]
+        if wi.size == 0 or rays.size == 0:
+            return np.full(n, np.nan)
+        s_h = np.column_stack([ce * np.sin(az[rays]), ce * np.cos(az[rays])])  # (r, 2)
+        nrm = self._w_n[wi]  # (w, 2)
+        c = s_h @ nrm.T  # (r, w): s . n
+        # Necessary for z_R < h_w: d_w tan(el) <= tau cos(el) tan(el) = z_R - z_a < h_w - z_a.
+        reach = delta[None, :] * tan_el[:, None] < (self._w_h[wi] - xa[2])[None, :]
+        ri, wj = np.nonzero((c > 0.0) & reach)
+        c = c[ri, wj]
+        dw = delta[wj]
+        tau = dw / c
+        w = wi[wj]
+        r_h = xa[:2] + tau[:, None] * (s_h[ri] - 2.0 * c[:, None] * self._w_n[w])
+        z_r = xa[2] + tau * se[ri]
+        s_wall = np.einsum("ij,ij->i", r_h - self._wa[w], self._w_dir[w]) / self._w_len[w]
+        ok = (s_wall >= 0.0) & (s_wall <= 1.0) & (z_r < self._w_h[w]) & (tau * ce[ri] <= max_dist_m)
+        ri, c, dw, r_h, z_r = ri[ok], c[ok], dw[ok], r_h[ok], z_r[ok]
+        excess = 2.0 * dw * c
+        r3 = np.column_stack([r_h, z_r])
+        a3 = np.broadcast_to(xa, r3.shape)
+        # Incident leg: from R toward the satellite, out to max_dist_m horizontally.
+        te = np.tan(el[rays][ri])
+        far = np.column_stack([r_h + max_dist_m * s_h[ri] / ce[ri][:, None], z_r + max_dist_m * te])
+        # _legs_clear(a, r, b) checks a->r and r->b: antenna -> R, then R -> far.
+        best = self._best_reflection(ri, excess, a3, r3, far, rays.size)
+        out = np.full(n, np.nan)
+        out[rays] = best
+        return out
+
+    # ------------------------------------------------------------------ links
+    def links(
+        self,
+        p0_xyz_m: ArrayLike,
+        p1_xyz_m: ArrayLike,
+        vehicle_boxes: ArrayLike | None = None,
+        exclude: ArrayLike | None = None,
+    ) -> LinkResult:
+        """Blocking and reflection for straight links ``p0 -> p1``.
+
+        Parameters
+        ----------
+        p0_xyz_m, p1_xyz_m : (m, 3)
+            Link end points, net XY metres and height above ground.
+        vehicle_boxes : (v, 6), optional
+            Rows ``(cx, cy, azimuth_rad, length_m, width_m, height_m)``: box centre, heading
+            clockwise from +y, and size; each box stands on the ground (z in [0, height]).
+        exclude : (m, 2) int, optional
+            Box rows ignored per link (the end points' own vehicles); -1 = none.
+
+        Returns
+        -------
+        LinkResult
+            See :class:`LinkResult`. A vehicle blocks when the segment passes through its box
+            (3-D slab clipping, Liang-Barsky); ties between kinds go to the nearer entry.
+        """
+        p0 = np.atleast_2d(np.asarray(p0_xyz_m, dtype=float))
+        p1 = np.atleast_2d(np.asarray(p1_xyz_m, dtype=float))
+        if p0.shape != p1.shape or p0.shape[-1] != 3:
+            raise ValueError(f"p0 and p1 must both be (m, 3), got {p0.shape} and {p1.shape}")
+        m = len(p0)
+        t_b, b_idx = self._building_hits(p0, p1)
+        t_v, v_idx = _box_hits(p0, p1, vehicle_boxes, exclude)
+        use_v = t_v < t_b
+        t_hit = np.where(use_v, t_v, t_b)
+        blocked = np.isfinite(t_hit)
+        kind = np.where(blocked, np.where(use_v, "vehicle", "building"), "")
+        bid = self._b_ids[np.maximum(b_idx, 0)] if self._b_ids.size else np.full(m, "")
+        blocker_id = np.where(blocked, np.where(use_v, v_idx.astype(str), bid), "")
+        length = np.linalg.norm(p1 - p0, axis=1)
+        hit = np.where(blocked, np.where(blocked, t_hit, 0.0) * length, np.nan)
+        refl = np.full(m, np.nan)
+        if blocked.any() and self._w_len.size:
+            idx = np.flatnonzero(blocked)
+            refl[idx] = self._link_reflection(p0[idx], p1[idx])
+        return LinkResult(
+            blocked=blocked,
+            blocker_kind=kind.astype(str),
+            blocker_id=blocker_id.astype(str),
+            hit_distance_m=hit,
+            reflection_excess_m=refl,
+        )
+
+    def _link_reflection(self, p0: FloatArray, p1: FloatArray) -> FloatArray:
+        """Shortest single-bounce wall reflection excess for each link (NaN if none)."""
+        k = len(p0)
+        e_max = self.max_reflection_excess_m
+        d_h = np.hypot(*(p1[:, :2] - p0[:, :2]).T)
+        radius = 0.5 * np.sqrt(e_max * (e_max + 2.0 * d_h))
+        # Bounding boxes grown by the radius: a cheap superset; the excess test below is exact.
+        lo = np.minimum(p0[:, :2], p1[:, :2]) - radius[:, None]
+        hi = np.maximum(p0[:, :2], p1[:, :2]) + radius[:, None]
+        li, wi = _query_pairs(self._wall_tree, shapely.box(lo[:, 0], lo[:, 1], hi[:, 0], hi[:, 1]))
+        if li.size == 0:
+            return np.full(k, np.nan)
+        nrm = self._w_n[wi]
+        a = self._wa[wi]
+        d0 = np.einsum("ij,ij->i", p0[li, :2] - a, nrm)
+        d1 = np.einsum("ij,ij->i", p1[li, :2] - a, nrm)
+        ok = (d0 > 0.0) & (d1 > 0.0)
+        li, wi, nrm, a, d0, d1 = li[ok], wi[ok], nrm[ok], a[ok], d0[ok], d1[ok]
+        img = p1[li, :2] - 2.0 * d1[:, None] * nrm
+        f = d0 / (d0 + d1)
+        r_h = p0[li, :2] + f[:, None] * (img - p0[li, :2])
+        z_r = p0[li, 2] + f * (p1[li, 2] - p0[li, 2])
+        s_wall = np.einsum("ij,ij->i", r_h - a, self._w_dir[wi]) / self._w_len[wi]
+        dz = p1[li, 2] - p0[li, 2]
+        dimg = img - p0[li, :2]
+        path = np.sqrt(dimg[:, 0] ** 2 + dimg[:, 1] ** 2 + dz**2)
+        excess = path - np.linalg.norm(p1[li] - p0[li], axis=1)
+        ok = (s_wall >= 0.0) & (s_wall <= 1.0) & (z_r >= 0.0) & (z_r < self._w_h[wi]) & (excess <= e_max)
+        li, r_h, z_r, excess = li[ok], r_h[ok], z_r[ok], excess[ok]
+        r3 = np.column_stack([r_h, z_r])
+        return self._best_reflection(li, excess, p0[li], r3, p1[li], k)
+
+
+def _box_hits(
+    p0: FloatArray, p1: FloatArray, boxes: ArrayLike | None, exclude: ArrayLike | None
+) -> tuple[FloatArray, NDArray[np.int64]]:
+    """First entry parameter t (inf if none) of segments into vehicle boxes, and the box row.
+
+    Slab clipping in each box's frame (forward = (sin a, cos a), left = (-cos a, sin a)):
+    the segment is inside on ``t`` in the intersection of ``[0, 1]`` with every axis'
+    slab interval; it passes through the box when that interval is non-empty (touching
+    a face only does not count).
+    """
+    m = len(p0)
+    if boxes is None:
+        return np.full(m, np.inf), np.full(m, -1, dtype=np.int64)
+    bx = np.atleast_2d(np.asarray(boxes, dtype=float))
+    if bx.size == 0:
+        return np.full(m, np.inf), np.full(m, -1, dtype=np.int64)
+    if bx.ndim != 2 or bx.shape[1] != 6:
+        raise ValueError(f"vehicle_boxes must be (v, 6), got {bx.shape}")
+    v = len(bx)
+    fwd = np.column_stack([np.sin(bx[:, 2]), np.cos(bx[:, 2])])
+    left = np.column_stack([-np.cos(bx[:, 2]), np.sin(bx[:, 2])])
+    rel = p0[:, None, :2] - bx[None, :, :2]  # (m, v, 2)
+    d = (p1 - p0)[:, None, :2]
+    d = np.broadcast_to(d, rel.shape)
+    axes = [
+        (np.einsum("mvk,vk->mv", rel, unit), np.einsum("mvk,vk->mv", d, unit), 0.5 * size)
+        for unit, size in ((fwd, bx[:, 3]), (left, bx[:, 4]))
+    ]
+    t_lo = np.zeros((m, v))
+    t_hi = np.ones((m, v))
+    slabs = [(q0, dq, -half[None, :], half[None, :]) for q0, dq, half in axes]
+    z0 = np.broadcast_to(p0[:, 2:3], (m, v))
+    dz = np.broadcast_to((p1 - p0)[:, 2:3], (m, v))
+    slabs.append((z0, dz, np.zeros((1, v)), bx[None, :, 5]))
+    for q0, dq, lo, hi in slabs:
+        par = dq == 0.0
+        with np.errstate(divide="ignore", invalid="ignore"):
+            t1 = (lo - q0) / dq
+            t2 = (hi - q0) / dq
+        inside = (q0 > lo) & (q0 < hi)
+        tmin = np.where(par, np.where(inside, -np.inf, np.inf), np.minimum(t1, t2))
+        tmax = np.where(par, np.where(inside, np.inf, -np.inf), np.maximum(t1, t2))
+        t_lo = np.maximum(t_lo, tmin)
+        t_hi = np.minimum(t_hi, tmax)
+    hit = t_lo < t_hi
+    if exclude is not None:
+        ex = np.asarray(exclude, dtype=np.int64).reshape(m, -1)
+        rows, cols = np.nonzero(ex >= 0)
+        hit[rows, ex[rows, cols]] = False
+    t_enter = np.where(hit, t_lo, np.inf)
+    j = np.argmin(t_enter, axis=1)
+    t_first = t_enter[np.arange(m), j]
+    return t_first, np.where(np.isfinite(t_first), j, -1)
