@@ -1,0 +1,299 @@
+"""Filter algebra: process discretization, the scalar update, gating, layout surgery."""
+
+from __future__ import annotations
+
+from dataclasses import replace
+
+import numpy as np
+import pytest
+from scipy.stats import binom
+
+from v2v.errors import UserError
+from v2v.estimation.filter import ClusterEkf, FilterConfig, MeasurementNoiseConfig, scalar_update
+from v2v.estimation.layout import StateLayout
+from v2v.estimation.process import ProcessNoiseConfig, transition, vehicle_block
+from v2v.estimation.simulate import SimScenario, run_filter, simulate, vehicle_ids
+from v2v.sensors.measurements import UwbRanges
+
+
+# --------------------------------------------------------------------------- process model
+def _gm_closed_form(tau, sigma, dt):
+    """Integrated first-order Gauss-Markov, q = 2 sigma^2 / tau, beta = 1 / tau:
+
+    F  = [[1, (1 - e^-b dt) / b], [0, e^-b dt]]
+    Qvv = sigma^2 (1 - e^-2b dt)
+    Qpv = q/b [ (1 - e^-b dt)/b - (1 - e^-2b dt)/(2b) ]
+    Qpp = q/b^2 [ dt - 2 (1 - e^-b dt)/b + (1 - e^-2b dt)/(2b) ]
+    (integrals of e^-b u and (1 - e^-b u)/b over u in [0, dt]).
+    """
+    b = 1.0 / tau
+    q = 2.0 * sigma**2 / tau
+    # 1 - e^-x evaluated as -expm1(-x): the plain form loses ~1e-13/x relative accuracy,
+    # which the cancellation in Qpp amplifies to 1e-7 at dt = 0.01 s.
+    m1, m2 = -np.expm1(-b * dt), -np.expm1(-2 * b * dt)
+    f = np.array([[1.0, m1 / b], [0.0, 1.0 - m1]])
+    qvv = sigma**2 * m2
+    qpv = q / b * (m1 / b - m2 / (2 * b))
+    qpp = q / b**2 * (dt - 2 * m1 / b + m2 / (2 * b))
+    return f, np.array([[qpp, qpv], [qpv, qvv]])
+
+
+@pytest.mark.parametrize("dt", [0.01, 0.1, 1.0, 7.0])
+def test_van_loan_matches_closed_form_gauss_markov(dt):
+    cfg = ProcessNoiseConfig()
+    f, q = vehicle_block(cfg, dt)
+    cases = [
+        ([0, 3], cfg.vel_tau_s, cfg.vel_sigma_horizontal_mps),
+        ([1, 4], cfg.vel_tau_s, cfg.vel_sigma_horizontal_mps),
+        ([2, 5], cfg.vel_tau_s, cfg.vel_sigma_vertical_mps),
+        ([6, 7], cfg.drift_tau_s, cfg.drift_sigma_mps),
+    ]
+    for idx, tau, sigma in cases:
+        f_ref, q_ref = _gm_closed_form(tau, sigma, dt)
+        # expm (Pade, scaling and squaring) has absolute error ~ eps ||M dt||; the clock's
+        # q = 2e5 m^2/s^3 makes ||M dt|| up to 1.4e6 at dt = 7 s -> atol 1e-9 on the O(1) F.
+        # Q is compared relative to each element (Qpp at 0.01 s is O(dt^3) = 1e-7 q).
+        np.testing.assert_allclose(f[np.ix_(idx, idx)], f_ref, rtol=1e-12, atol=1e-9)
+        np.testing.assert_allclose(q[np.ix_(idx, idx)], q_ref, rtol=1e-9, atol=0)
+    # blocks are independent: nothing couples axes or position to the clock
+    mask = np.zeros((8, 8), dtype=bool)
+    for idx, *_ in cases:
+        mask[np.ix_(idx, idx)] = True
+    assert np.all(f[~mask] == 0.0) and np.all(q[~mask] == 0.0)
+
+
+def test_dense_transition_is_block_diagonal_with_random_walks():
+    cfg = ProcessNoiseConfig(azimuth_rw_rad_per_sqrt_s=0.02, uwb_bias_rw_m_per_sqrt_s=0.01,
+                             uwb_scale_rw_per_sqrt_s=1e-5)
+    lay = StateLayout.build(lead="L", vehicles=["A", "B"], azimuth_vehicles=["L"], uwb_pairs=[("L", "A")])
+    f, q = transition(lay, cfg, 0.5)
+    fb, qb = vehicle_block(cfg, 0.5)
+    np.testing.assert_array_equal(f[lay.block("vehicle", "B"), lay.block("vehicle", "B")], fb)
+    assert q[lay.azimuth("L"), lay.azimuth("L")] == pytest.approx(0.02**2 * 0.5, rel=1e-15)
+    assert q[lay.uwb_scale(("A", "L")), lay.uwb_scale(("A", "L"))] == pytest.approx(1e-10 * 0.5, rel=1e-15)
+    assert f[lay.azimuth("L"), lay.azimuth("L")] == 1.0
+
+
+# --------------------------------------------------------------------------- scalar update
+def test_scalar_update_worked_by_hand():
+    """Two states, observe the first (MacGougan (2009) table 3.1):
+
+    x = [1, 2], P = [[4, 1], [1, 2]], h = [1, 0], z = 3, r = 1
+    nu = 3 - 1 = 2;  S = h P h^T + r = 4 + 1 = 5
+    k = P h^T / S = [4, 1] / 5 = [0.8, 0.2]
+    x+ = x + k nu = [1 + 1.6, 2 + 0.4] = [2.6, 2.4]
+    P+ = P - k k^T S = [[4 - 3.2, 1 - 0.8], [1 - 0.8, 2 - 0.2]] = [[0.8, 0.2], [0.2, 1.8]]
+    """
+    x = np.array([1.0, 2.0])
+    P = np.array([[4.0, 1.0], [1.0, 2.0]])
+    s, ok = scalar_update(x, P, np.array([0]), np.array([1.0]), innovation=2.0, r_var=1.0, gate_k=3.29)
+    assert ok and s == pytest.approx(5.0, abs=1e-15)
+    np.testing.assert_allclose(x, [2.6, 2.4], atol=1e-15)
+    np.testing.assert_allclose(P, [[0.8, 0.2], [0.2, 1.8]], atol=1e-15)
+
+
+def test_scalar_update_gate_rejects_without_touching_state():
+    """|nu| / sqrt(S) = 7.5 / sqrt(5) = 3.354 > 3.29 (alpha = 0.001): rejected, x and P untouched."""
+    x = np.array([1.0, 2.0])
+    P = np.array([[4.0, 1.0], [1.0, 2.0]])
+    x0, p0 = x.copy(), P.copy()
+    s, ok = scalar_update(x, P, np.array([0]), np.array([1.0]), innovation=7.5, r_var=1.0, gate_k=3.2905)
+    assert not ok and s == pytest.approx(5.0)
+    np.testing.assert_array_equal(x, x0)
+    np.testing.assert_array_equal(P, p0)
+    # just inside: 7.3 / sqrt(5) = 3.265 < 3.29
+    assert scalar_update(x, P, np.array([0]), np.array([1.0]), 7.3, 1.0, 3.2905)[1]
+
+
+def test_gate_constant_from_significance():
+    """alpha = 0.001 two-sided -> 3.2905 (standard normal table); alpha = 0.0026 -> 3.0 (thesis)."""
+    assert FilterConfig().gate_k == pytest.approx(3.2905, abs=1e-4)
+    assert FilterConfig(significance=0.0026998).gate_k == pytest.approx(3.0, abs=1e-4)
+
+
+# --------------------------------------------------------------------------- the engine
+def _layout3(azimuth=("lead", "v1"), uwb_pairs=(("lead", "v1"),)):
+    ids = vehicle_ids(3)
+    return StateLayout.build(lead="lead", vehicles=ids[1:], azimuth_vehicles=azimuth, uwb_pairs=uwb_pairs)
+
+
+def test_covariance_stays_symmetric_pd_after_1000_updates():
+    cfg = FilterConfig()
+    scn = SimScenario(n_vehicles=3, duration_s=8.0, turn_rate_rps=0.05, bearing_vehicles=("lead", "v1"),
+                      uwb_state_pairs=(("lead", "v1"),))
+    ekf = ClusterEkf(_layout3(), cfg)
+    n_updates = 0
+    for _, infos in run_filter(ekf, simulate(scn, cfg, np.random.default_rng(3)), scn.dt_s):
+        n_updates += sum(i.accepted for i in infos)
+        assert np.all(np.isfinite(ekf.x))
+    assert n_updates >= 1000
+    P = ekf.P
+    np.testing.assert_array_equal(P, P.T)  # rank-1 form and symmetrized prediction: exact
+    assert np.linalg.eigvalsh(P).min() > 0.0
+    np.linalg.cholesky(P)
+
+
+def test_gating_rejects_10_sigma_blunders_and_accepts_inliers():
+    """Process-model world (filter exactly right), 20 s at 10 Hz, all measurement types.
+
+    Inliers: every innovation test is a Bernoulli(alpha = 0.001) false rejection under H0,
+    so the rejection count is <= the binomial 99.99 % quantile (false-failure rate 1e-4).
+    Blunders: +10 sigma on one UWB range and on one (not first) SD pseudorange after
+    convergence; both must be rejected (a 10-sigma error with S ~ sigma^2 gives |t| ~ 10).
+    """
+    cfg = FilterConfig(process=ProcessNoiseConfig(vel_sigma_horizontal_mps=1.0, vel_sigma_vertical_mps=0.1))
+    scn = SimScenario(n_vehicles=3, duration_s=20.0, truth="process", bearing_vehicles=("lead",))
+    ekf = ClusterEkf(_layout3(azimuth=(), uwb_pairs=()), cfg)
+    tests = rejects = 0
+    eps = simulate(scn, cfg, np.random.default_rng(11))
+    for _ep, infos in run_filter(ekf, eps, scn.dt_s):
+        tests += len(infos)
+        rejects += sum(not i.accepted for i in infos)
+    assert tests > 5000
+    assert rejects <= binom.ppf(0.9999, tests, cfg.significance)
+
+    # UWB blunder: true range + 10 sigma
+    last = eps[-1]
+    k = last.uwb.a.index("lead") if "lead" in last.uwb.a else 0
+    bad = UwbRanges(t_s=last.uwb.t_s[:1], true_t_s=last.uwb.t_s[:1], a=(last.uwb.a[k],), b=(last.uwb.b[k],),
+                    range_m=last.uwb.true_range_m[k:k + 1] + 10 * cfg.noise.uwb_sigma_m,
+                    true_range_m=last.uwb.true_range_m[k:k + 1], los=np.array([True]))
+    info = ekf.update_uwb(bad)
+    assert len(info) == 1 and not info[0].accepted and abs(info[0].innovation) / np.sqrt(info[0].variance) > 8
+    # an inlier at the same geometry is accepted
+    good = replace(bad, range_m=last.uwb.true_range_m[k:k + 1] + 0.5 * cfg.noise.uwb_sigma_m)
+    assert ekf.update_uwb(good)[0].accepted
+
+    # SD pseudorange blunder on the lowest-elevation satellite of v1 (processed last)
+    gnss = dict(last.gnss)
+    g = gnss["v1"]
+    low = int(np.argmin(g.elevation_rad))
+    pr = g.pseudorange_m.copy()
+    pr[low] += 10 * np.sqrt(cfg.noise.sd_pseudorange_var_m2)
+    gnss["v1"] = replace(g, pseudorange_m=pr)
+    infos = [i for i in ekf.update_gnss(gnss, last.lead_base_ecef_m) if i.kind == "sd_pseudorange"]
+    blunder = [i for i in infos if i.vehicles == ("v1",) and i.prn == int(g.prn[low])]
+    assert len(blunder) == 1 and not blunder[0].accepted
+    assert sum(not i.accepted for i in infos) == 1
+
+
+def test_first_update_uses_a_screened_clean_pseudorange():
+    """Thesis eq. 3.28-3.29: the first PR of a vehicle mostly observes the clock, so a blunder
+    there would pass its weak test. A +100 m blunder on the *highest*-elevation satellite is
+    caught by the parallel least-squares w-test and not used first; it is rejected later."""
+    cfg = FilterConfig()
+    scn = SimScenario(n_vehicles=2, duration_s=2.0, uwb=False, bearing_vehicles=())
+    lay = StateLayout.build(lead="lead", vehicles=["v1"])
+    ekf = ClusterEkf(lay, cfg)
+    eps = simulate(scn, cfg, np.random.default_rng(5))
+    for _ in run_filter(ekf, eps[:-1], scn.dt_s):
+        pass
+    ekf.predict(scn.dt_s)
+    last = eps[-1]
+    g = last.gnss["v1"]
+    hi = int(np.argmax(g.elevation_rad))
+    pr = g.pseudorange_m.copy()
+    pr[hi] += 100.0
+    infos = ekf.update_gnss({**last.gnss, "v1": replace(g, pseudorange_m=pr)}, last.lead_base_ecef_m)
+    prs = [i for i in infos if i.kind == "sd_pseudorange"]
+    assert prs[0].prn != int(g.prn[hi]) and prs[0].accepted
+    bad = [i for i in prs if i.prn == int(g.prn[hi])]
+    assert len(bad) == 1 and not bad[0].accepted
+    assert ekf.counters.get("screened_first_update", 0) >= 1
+
+
+def test_stays_uninitialized_with_three_satellites_and_predicts():
+    cfg = FilterConfig()
+    scn = SimScenario(n_vehicles=2, duration_s=1.0, uwb=False, bearing_vehicles=(),
+                      sat_az_el_rad=SimScenario().sat_az_el_rad[:3])
+    ekf = ClusterEkf(StateLayout.build(lead="lead", vehicles=["v1"]), cfg)
+    for _, infos in run_filter(ekf, simulate(scn, cfg, np.random.default_rng(0)), scn.dt_s):
+        assert infos == []
+    assert not ekf.is_initialized("v1")
+    assert ekf.counters["init_too_few_satellites"] == 11
+    assert np.all(np.isfinite(ekf.P))
+
+
+def test_nonfinite_measurements_are_skipped_and_counted():
+    cfg = FilterConfig()
+    scn = SimScenario(n_vehicles=2, duration_s=1.0, bearing_vehicles=())
+    ekf = ClusterEkf(StateLayout.build(lead="lead", vehicles=["v1"]), cfg)
+    eps = simulate(scn, cfg, np.random.default_rng(0))
+    for _ in run_filter(ekf, eps, scn.dt_s):
+        pass
+    last = eps[-1]
+    g = last.gnss["v1"]
+    pr = g.pseudorange_m.copy()
+    pr[0] = np.nan
+    ekf.update_gnss({**last.gnss, "v1": replace(g, pseudorange_m=pr)}, last.lead_base_ecef_m)
+    ekf.update_uwb(replace(last.uwb, range_m=np.array([np.inf])))
+    assert ekf.counters["nonfinite_sd_pseudorange"] == 1
+    assert ekf.counters["nonfinite_uwb"] == 1
+    assert np.all(np.isfinite(ekf.x)) and np.all(np.isfinite(ekf.P))
+
+
+def test_uwb_inequality_constraint_lands_on_the_bound():
+    """Thesis eq. 3.19: bias above max -> pseudo-measurement at min with variance
+    P (max - min) / (x - max); gain P / (P + r) = (x - max) / (x - min) moves x exactly to max."""
+    cfg = FilterConfig(uwb_bias_bounds_m=(-0.5, 0.5))
+    lay = StateLayout.build(lead="L", vehicles=["A"], uwb_pairs=[("L", "A")])
+    ekf = ClusterEkf(lay, cfg)
+    i = lay.uwb_bias(("L", "A"))
+    ekf._set_block(slice(i, i + 1), np.array([0.8]), np.array([[0.04]]))
+    infos = ekf._apply_constraints(("A", "L"))
+    assert len(infos) == 1 and infos[0].kind == "uwb_constraint"
+    assert ekf.x[i] == pytest.approx(0.5, abs=1e-12)
+    # r = 0.04 * 1.0 / 0.3;  P+ = P r / (P + r) = 0.04 / (1 + 0.3) = 0.04 / 1.3
+    assert ekf.P[i, i] == pytest.approx(0.04 / 1.3, rel=1e-12)
+
+
+# --------------------------------------------------------------------------- layout
+def test_layout_named_slices_and_add_remove_remap():
+    lay = StateLayout.build(lead="L", vehicles=["A", "B"], azimuth_vehicles=["L", "A"], uwb_pairs=[("A", "L")])
+    assert lay.n == 8 + 8 + 1 + 1 + 2
+    assert lay.position("B") == slice(8, 11) and lay.clock("A") == 6 and lay.drift("B") == 15
+    assert lay.uwb_bias(("L", "A")) == lay.uwb_bias(("A", "L"))
+    rng = np.random.default_rng(1)
+    x = rng.standard_normal(lay.n)
+    a = rng.standard_normal((lay.n, lay.n))
+    P = a @ a.T
+    new, remap = lay.add_vehicle("C", mean=np.arange(8.0), variance=1e6)
+    x2, p2 = remap(x, P)
+    assert new.vehicles == ("A", "B", "C") and new.n == lay.n + 8
+    np.testing.assert_array_equal(x2[new.position("A")], x[lay.position("A")])
+    np.testing.assert_array_equal(x2[new.block("vehicle", "C")], np.arange(8.0))
+    assert p2[new.clock("C"), new.clock("C")] == 1e6 and np.all(p2[new.block("vehicle", "C"), :16] == 0)
+    np.testing.assert_array_equal(p2[new.azimuth("L"), new.uwb_scale(("A", "L"))],
+                                  P[lay.azimuth("L"), lay.uwb_scale(("A", "L"))])
+    gone, remap2 = lay.without_vehicle("A")
+    x3, p3 = remap2(x, P)
+    assert gone.vehicles == ("B",) and gone.azimuth_vehicles == ("L",) and gone.uwb_pairs == ()
+    keep = np.r_[np.arange(8, 16), lay.azimuth("L")]
+    np.testing.assert_array_equal(x3, x[keep])
+    np.testing.assert_array_equal(p3, P[np.ix_(keep, keep)])
+
+
+def test_engine_add_and_remove_vehicle_keeps_filtering():
+    cfg = FilterConfig()
+    scn = SimScenario(n_vehicles=3, duration_s=2.0, bearing_vehicles=())
+    ekf = ClusterEkf(StateLayout.build(lead="lead", vehicles=["v1"]), cfg)
+    eps = simulate(scn, cfg, np.random.default_rng(2))
+    for k, (_, _) in enumerate(run_filter(ekf, eps, scn.dt_s)):
+        if k == 5:
+            ekf.add_vehicle("v2")
+        if k == 15:
+            ekf.remove_vehicle("v1")
+    assert ekf.layout.vehicles == ("v2",) and ekf.is_initialized("v2")
+    e = ekf.x[ekf.layout.position("v2")] - eps[-1].rel_state["v2"][:3]
+    assert np.all(np.abs(e) < 5 * np.sqrt(np.diag(ekf.P)[ekf.layout.position("v2")]))
+
+
+def test_bad_configuration_is_a_user_error():
+    with pytest.raises(UserError, match="significance"):
+        FilterConfig(significance=0.0)
+    with pytest.raises(UserError, match="vel_tau_s"):
+        ProcessNoiseConfig(vel_tau_s=0.0)
+    with pytest.raises(UserError, match="uwb_sigma_m"):
+        MeasurementNoiseConfig(uwb_sigma_m=-1.0)
+    with pytest.raises(UserError, match="uwb_pairs"):
+        StateLayout.build(lead="L", vehicles=["A"], uwb_pairs=[("A", "X")])
