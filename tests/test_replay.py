@@ -1,0 +1,408 @@
+"""Replay logger: write a small synthetic run, read it back with rerun's own reader.
+
+Reading uses ``rerun.chunk.RrdReader`` (rerun-sdk 0.41; ``rerun.dataframe`` is gone).
+Geometry stored by rerun is float32 (Vec3D, Vec2D, HalfSize3D, Quaternion): float32 has a
+24-bit mantissa, relative spacing 2**-23 = 1.2e-7, so coordinates below 128 m round by at
+most 128 m * 2**-24 = 7.6e-6 m. Geometric tolerances below are derived from that. Scalars
+(error time series) are float64 and must round-trip exactly.
+"""
+
+from __future__ import annotations
+
+import math
+import os
+from collections import defaultdict
+from types import SimpleNamespace
+
+import numpy as np
+import pytest
+import shapely
+
+rr = pytest.importorskip("rerun")
+from rerun.chunk import RrdReader  # noqa: E402
+from scipy.stats import chi2  # noqa: E402
+
+from v2v.frames import GeoReference  # noqa: E402
+from v2v.traffic.snapshot import TrafficStep, VehicleState  # noqa: E402
+from v2v.viz import blueprint as bp  # noqa: E402
+from v2v.viz.logger import NullLogger  # noqa: E402
+from v2v.viz.rerun_logger import (  # noqa: E402
+    RerunReplayLogger,
+    RerunReplayParams,
+    ellipse_scale,
+    extrude_footprints,
+)
+
+F32_ABS_M = 1e-5  # > 7.6e-6 m, float32 rounding of coordinates below 128 m (module docstring)
+GEO = GeoReference(proj=None, origin_lat_deg=51.08, origin_lon_deg=-114.13)  # Calgary, tangent TM
+N_STEPS = 100
+DT_S = 0.1
+SOLUTIONS = ("gps", "gps+uwb")  # '+' must be escaped in entity paths
+VEHICLES = ("lead", "veh.1", "veh_2")
+L_SHAPE = np.array(
+    [[0.0, 10.0], [20.0, 10.0], [20.0, 20.0], [10.0, 20.0], [10.0, 30.0], [0.0, 30.0]]
+)  # CCW, 300 m²
+L_HEIGHT_M = 12.0
+
+
+def _state(
+    vid: str, t_s: float, front_xy, az_rad: float, *, lead: bool, length=4.5, width=1.8, height=1.5
+) -> VehicleState:
+    x, y = front_xy
+    return VehicleState(
+        vehicle_id=vid,
+        cluster="c0",
+        is_lead=lead,
+        t_s=t_s,
+        xyz_m=np.array([x, y, height]),
+        lat_rad=math.radians(51.08),
+        lon_rad=math.radians(-114.13),
+        h_m=height,
+        ecef_m=np.zeros(3),
+        vel_enu_mps=np.zeros(3),
+        speed_mps=10.0,
+        accel_mps2=0.0,
+        azimuth_rad=az_rad,
+        yaw_rate_rps=0.0,
+        front_bumper_xy_m=np.array([x, y]),
+        edge_id="e",
+        lane_id="e_0",
+        lane_index=0,
+        lane_width_m=3.2,
+        lateral_offset_m=0.0,
+        length_m=length,
+        width_m=width,
+        height_m=height,
+    )
+
+
+def _error_row(k: int, s: int, v: int) -> tuple[float, ...]:
+    """Deterministic, distinct float64 values per (step, solution, vehicle)."""
+    base = 0.001 * k + 0.1 * s + 0.01 * v
+    return (base + 1 / 3, -base - 1 / 7, 0.2 + base, 0.3 + base, 2.0 + base, 1.0 + base, 8 + v, k % 3)
+
+
+def _read(path) -> dict[str, list]:
+    chunks: dict[str, list] = defaultdict(list)
+    for c in RrdReader(path).stream():
+        chunks[c.entity_path].append(c)
+    return chunks
+
+
+def _column(chunks, name: str, timeline: str = bp.TIMELINE):
+    """(times_ns, values) of a component over all temporal chunks, sorted by time."""
+    t, vals = [], []
+    for c in chunks:
+        if c.is_static:
+            continue
+        rb = c.to_record_batch()
+        if name not in rb.schema.names:
+            continue
+        t.extend(rb.column(timeline).cast("int64").to_pylist())
+        vals.extend(rb.column(name).to_pylist())
+    order = np.argsort(t, kind="stable")
+    return np.asarray(t)[order], [vals[i] for i in order]
+
+
+@pytest.fixture(scope="module")
+def run(tmp_path_factory):
+    """A synthetic 100-step run: 3 vehicles heading east along y = 0, 2 solutions."""
+    path = tmp_path_factory.mktemp("replay") / "replay.rrd"
+    building = SimpleNamespace(id="b1", footprint_xy_m=L_SHAPE, height_m=L_HEIGHT_M, height_source="height")
+    tree = SimpleNamespace(
+        id="f1",
+        footprint_xy_m=np.array([[30.0, 10.0], [40.0, 10.0], [40.0, 20.0]]),
+        height_m=8.0,
+        attenuation_db_per_m=0.5,
+    )
+    # lanes symmetric about net x = 0 (the tangent origin), so the grid convergence at their centre is 0
+    lanes = {"e_0": np.array([[-100.0, 0.0], [100.0, 0.0]]), "e_1": np.array([[-100.0, 3.2], [100.0, 3.2]])}
+    logger = RerunReplayLogger(
+        path, params=RerunReplayParams(flush_rows=64, recording_id="test")
+    )  # 64: several flushes
+    logger.log_world(lanes, {"e_0": 3.2, "e_1": 3.2}, [building], [tree], GEO)
+    for k in range(N_STEPS):
+        t = k * DT_S
+        vs = {
+            vid: _state(vid, t, (50.0 - 30.0 * i + t, 0.0), math.pi / 2, lead=i == 0)
+            for i, vid in enumerate(VEHICLES)
+        }
+        logger.log_truth(t, TrafficStep(t_s=t, vehicles=vs))
+        for s, sol in enumerate(SOLUTIONS):
+            logger.log_estimates(
+                t,
+                sol,
+                VEHICLES[1:],
+                [[20.0 + t, 0.1], [-10.0 + t, -0.1]],
+                [[[0.04, 0.01], [0.01, 0.09]], [[0.25, 0.0], [0.0, 0.01]]],
+            )
+            for v, vid in enumerate(VEHICLES[1:]):
+                logger.log_errors(t, sol, vid, *_error_row(k, s, v))
+        logger.log_links(
+            t,
+            "uwb",
+            [[50.0, 0.0, 1.5], [50.0, 0.0, 1.5]],
+            [[20.0, 0.0, 1.5], [-10.0, 0.0, 1.5]],
+            ["los", "nlos"],
+        )
+        logger.log_links(t, "bearing", [[50.0, 0.0, 1.5]], [[20.0, 0.0, 1.5]], ["rejected"])
+        logger.log_satellites(
+            t,
+            "veh.1",
+            ["G01", "G07", "G30"],
+            [math.pi / 2, 0.0, math.pi],
+            np.radians([0.0, 30.0, 90.0]),
+            [True, False, True],
+        )
+    logger.close()
+    return path, _read(path)
+
+
+def test_entity_paths_exist_and_solution_names_are_escaped(run):
+    _, chunks = run
+    expected = {
+        "/world/lanes",
+        "/world/lanes/surface",
+        "/world/buildings",
+        "/world/foliage",
+        "/world/vehicles/truth",
+        "/world/vehicles/truth/antennas",
+        "/world/vehicles/background",
+        "/world/estimates/gps",
+        "/world/estimates/gps/ellipses",
+        "/world/estimates/gps\\+uwb/ellipses",
+        "/world/links/uwb",
+        "/world/links/bearing",
+        "/map/lanes",
+        "/map/vehicles",
+        "/sky/veh.1",
+        "/sky/veh.1/grid",
+    }
+    expected |= {
+        f"/errors/{s}/{v}/{k}" for s in ("gps", "gps\\+uwb") for v in VEHICLES[1:] for k in bp.ERROR_SERIES
+    }
+    assert expected <= set(chunks), sorted(expected - set(chunks))
+    assert not any(p.startswith("/errors/") and "/lead/" in p for p in chunks)  # never logged for the lead
+
+
+@pytest.mark.parametrize("s,v", [(0, 0), (1, 1)])
+def test_error_series_round_trip(run, s, v):
+    """Every logged row is there once, at its time, with its exact float64 value."""
+    _, chunks = run
+    sol, vid = SOLUTIONS[s], VEHICLES[1 + v]
+    t_ns, along = _column(chunks[bp.error_path(sol, vid, "along")], "Scalars:scalars")
+    assert len(t_ns) == N_STEPS
+    # durations are stored as integer nanoseconds: k * 0.1 s rounds to the nearest ns
+    np.testing.assert_allclose(t_ns, np.arange(N_STEPS) * DT_S * 1e9, atol=1.0)
+    assert along[0] == [_error_row(0, s, v)[0]]
+    assert along[-1] == [_error_row(N_STEPS - 1, s, v)[0]]
+    assert [a[0] for a in along] == [_error_row(k, s, v)[0] for k in range(N_STEPS)]
+    _, sig = _column(chunks[bp.error_path(sol, vid, "along_sigma")], "Scalars:scalars")
+    assert sig[-1] == [
+        _error_row(N_STEPS - 1, s, v)[2],
+        -_error_row(N_STEPS - 1, s, v)[2],
+    ]  # [+1 sigma, -1 sigma]
+    _, rej = _column(chunks[bp.error_path(sol, vid, "rejections")], "Scalars:scalars")
+    assert [r[0] for r in rej] == [float(k % 3) for k in range(N_STEPS)]
+
+
+def test_static_world_is_static_and_building_mesh_is_the_prism(run):
+    """Roof area = footprint area (300 m² L-shape), wall area = perimeter (80 m) x height."""
+    _, chunks = run
+    for p in (
+        "/world/buildings",
+        "/world/foliage",
+        "/world/lanes",
+        "/world/lanes/surface",
+        "/map/lanes",
+        "/sky/veh.1/grid",
+    ):
+        assert all(c.is_static and c.timeline_names == [] for c in chunks[p]), p
+    rb = chunks["/world/buildings"][0].to_record_batch()
+    verts = np.asarray(rb.column("Mesh3D:vertex_positions").to_pylist()[0])
+    tris = np.asarray(rb.column("Mesh3D:triangle_indices").to_pylist()[0])
+    normals = np.asarray(rb.column("Mesh3D:vertex_normals").to_pylist()[0])
+    p = verts[tris]
+    cross = np.cross(p[:, 1] - p[:, 0], p[:, 2] - p[:, 0])
+    area = 0.5 * np.linalg.norm(cross, axis=1)
+    roof = np.all(np.abs(p[:, :, 2] - L_HEIGHT_M) < F32_ABS_M, axis=1)
+    # float32 vertices (< 128 m): area error <= ~2 * 30 m * 1e-5 m per triangle, far below 1e-3 m²
+    assert area[roof].sum() == pytest.approx(300.0, abs=1e-3)
+    assert area[~roof].sum() == pytest.approx(80.0 * L_HEIGHT_M, abs=1e-3)
+    assert np.all(cross[roof, 2] > 0)  # roof faces counter-clockwise seen from above (front faces)
+    # every wall faces outward: a point just outside along the face normal lies outside the footprint
+    poly = shapely.Polygon(L_SHAPE)
+    n_face = cross[~roof] / np.linalg.norm(cross[~roof], axis=1, keepdims=True)
+    probe = p[~roof].mean(axis=1)[:, :2] + 0.01 * n_face[:, :2]
+    assert not any(poly.contains(shapely.Point(q)) for q in probe)
+    np.testing.assert_allclose(
+        normals[tris[~roof, 0]], n_face, atol=1e-6
+    )  # stored normals agree with winding
+
+
+def test_extrude_accepts_clockwise_and_closed_footprints():
+    """Orientation and a repeated closing vertex must not change the prism."""
+    cw_closed = np.vstack([L_SHAPE[::-1], L_SHAPE[-1:]])
+    v1, t1, _ = extrude_footprints([L_SHAPE], [5.0])
+    v2, t2, _ = extrude_footprints([cw_closed], [5.0])
+    assert len(t1) == len(t2) == 4 + 2 * 6  # roof: K - 2 = 4 triangles; 2 per wall
+    a1 = (
+        0.5 * np.linalg.norm(np.cross(v1[t1][:, 1] - v1[t1][:, 0], v1[t1][:, 2] - v1[t1][:, 0]), axis=1).sum()
+    )
+    a2 = (
+        0.5 * np.linalg.norm(np.cross(v2[t2][:, 1] - v2[t2][:, 0], v2[t2][:, 2] - v2[t2][:, 0]), axis=1).sum()
+    )
+    assert a1 == pytest.approx(300.0 + 80.0 * 5.0, rel=1e-12) and a2 == pytest.approx(a1, rel=1e-12)
+
+
+def test_truth_box_size_centre_and_heading(run):
+    """Half sizes L/2, W/2, H/2; centre = front bumper - L/2 along the heading (east here)."""
+    _, chunks = run
+    t_ns, half = _column(chunks["/world/vehicles/truth"], "Boxes3D:half_sizes")
+    _, centres = _column(chunks["/world/vehicles/truth"], "Boxes3D:centers")
+    _, quats = _column(chunks["/world/vehicles/truth"], "Boxes3D:quaternions")
+    _, labels = _column(chunks["/world/vehicles/truth"], "Boxes3D:labels")
+    assert len(t_ns) == N_STEPS
+    k = N_STEPS - 1
+    i = labels[k].index("veh.1")
+    np.testing.assert_allclose(half[k][i], [2.25, 0.9, 0.75], atol=1e-6)  # 4.5 x 1.8 x 1.5 m car
+    front_x = 50.0 - 30.0 * 1 + k * DT_S
+    np.testing.assert_allclose(centres[k][i], [front_x - 2.25, 0.0, 0.75], atol=F32_ABS_M)
+    # the box's body +x axis, rotated by its quaternion, must point along azimuth 90 deg = +x (east)
+    x, y, z, w = quats[k][i]
+    body_x = np.array([1 - 2 * (y * y + z * z), 2 * (x * y + w * z), 2 * (x * z - w * y)])
+    np.testing.assert_allclose(body_x, [math.sin(math.pi / 2), math.cos(math.pi / 2), 0.0], atol=1e-6)
+
+
+def test_truth_box_heading_north_without_world(tmp_path):
+    """Azimuth 0 (north): body +x -> +y, centre 2.25 m south of the front bumper (no world: gamma = 0)."""
+    path = tmp_path / "r.rrd"
+    with RerunReplayLogger(path) as lg:
+        lg.log_truth(0.0, TrafficStep(t_s=0.0, vehicles={"a": _state("a", 0.0, (5.0, 7.0), 0.0, lead=True)}))
+    c = _read(path)["/world/vehicles/truth"]
+    _, centres = _column(c, "Boxes3D:centers")
+    _, quats = _column(c, "Boxes3D:quaternions")
+    np.testing.assert_allclose(centres[0][0], [5.0, 7.0 - 2.25, 0.75], atol=F32_ABS_M)
+    x, y, z, w = quats[0][0]
+    np.testing.assert_allclose([1 - 2 * (y * y + z * z), 2 * (x * y + w * z)], [0.0, 1.0], atol=1e-6)
+
+
+def test_ellipse_is_the_95_percent_contour(run):
+    """Every outline point d satisfies d^T C^-1 d = k^2, k^2 = chi2.ppf(0.95, 2) = 5.9915."""
+    assert ellipse_scale(0.95) ** 2 == pytest.approx(chi2.ppf(0.95, 2), rel=1e-12)
+    _, chunks = run
+    _, strips = _column(chunks[bp.ellipses_path("gps+uwb")], "LineStrips3D:strips")
+    _, pts = _column(chunks[bp.estimates_path("gps+uwb")], "Points3D:positions")
+    covs = [np.array([[0.04, 0.01], [0.01, 0.09]]), np.array([[0.25, 0.0], [0.0, 0.01]])]
+    k = N_STEPS - 1
+    assert len(strips[k]) == 2
+    for j, cov in enumerate(covs):
+        outline = np.asarray(strips[k][j])
+        centre = np.asarray(pts[k][j])
+        d = outline[:, :2] - centre[:2]
+        m2 = np.einsum("pi,ij,pj->p", d, np.linalg.inv(cov), d)
+        # float32 points near 30 m: |d| error ~ 4e-6 m against |d| >= 0.24 m -> relative m2 error < 1e-4
+        np.testing.assert_allclose(m2, chi2.ppf(0.95, 2), rtol=1e-4)
+        np.testing.assert_allclose(outline[0], outline[-1], atol=0)  # closed
+
+
+def test_covariance_is_rotated_by_grid_convergence(tmp_path):
+    """A covariance along true north only must be drawn along grid azimuth -gamma in net XY."""
+    lanes = {"far": np.array([[39_000.0, 0.0], [41_000.0, 0.0]])}  # 40 km east of the central meridian
+    gamma = GEO.grid_convergence_rad(40_000.0, 0.0)
+    assert abs(gamma) > 1e-3  # ~ dlon sin(lat) = 5.7e-3 * 0.78: big enough to see
+    path = tmp_path / "r.rrd"
+    with RerunReplayLogger(path) as lg:
+        lg.log_world(lanes, {}, [], [], GEO)
+        lg.log_estimates(0.0, "s", ["a"], [[0.0, 0.0]], [[[0.0, 0.0], [0.0, 4.0]]])
+    _, strips = _column(_read(path)[bp.ellipses_path("s")], "LineStrips3D:strips")
+    outline = np.asarray(strips[0][0])[:, :2]
+    far = outline[np.argmax(np.linalg.norm(outline, axis=1))]
+    assert np.linalg.norm(far) == pytest.approx(2.0 * ellipse_scale(0.95), rel=1e-6)  # k sigma, sigma = 2 m
+    grid_az = math.atan2(far[0], far[1])
+    grid_az = (grid_az + math.pi / 2) % math.pi - math.pi / 2  # the axis has no sign
+    assert grid_az == pytest.approx(-gamma, abs=1e-6)
+
+
+def test_links_and_sky(run):
+    _, chunks = run
+    _, colors = _column(chunks["/world/links/uwb"], "LineStrips3D:colors")
+    rgb = [((c >> 24) & 255, (c >> 16) & 255, (c >> 8) & 255) for c in colors[-1]]  # rerun stores 0xRRGGBBAA
+    assert rgb == [(40, 200, 80), (255, 150, 30)]  # los green, nlos orange
+    _, sky = _column(chunks["/sky/veh.1"], "Points2D:positions")
+    # az 90 deg, el 0 -> (90, 0); az 0, el 30 -> north, 60 deg from the centre, drawn up (y < 0);
+    # az 180, el 90 -> the centre
+    np.testing.assert_allclose(sky[-1], [[90.0, 0.0], [0.0, -60.0], [0.0, 0.0]], atol=1e-4)
+
+
+def test_blueprint_is_stored_with_the_views(run):
+    """The blueprint travels in the file, and its along-track view's query, run through
+    rerun's own entity-path-filter engine on the recording, selects exactly the along-track
+    error and sigma series of every (solution, vehicle) pair (escaped names included)."""
+    path, _ = run
+    reader = RrdReader(path)
+    assert len(reader.recordings()) == 1 and len(reader.blueprints()) == 1
+    kinds, queries = set(), []
+    for c in reader.stream(store=reader.blueprints()[0]):
+        rb = c.to_record_batch()
+        if "ViewBlueprint:class_identifier" in rb.schema.names:
+            kinds.update(rb.column("ViewBlueprint:class_identifier").to_pylist()[0])
+        if "ViewContents:query" in rb.schema.names:
+            queries.append(rb.column("ViewContents:query").to_pylist()[0])
+    assert {"3D", "TimeSeries", "2D", "Map"} <= {k.replace("Spatial", "") for k in kinds}, kinds
+    along_query = [q for q in queries if any(line.endswith("/along_sigma") for line in q)]
+    assert len(along_query) == 1
+    selected = {c.entity_path for c in RrdReader(path).stream().filter(content=along_query[0])}
+    expected = {
+        bp.error_path(s, v, k) for s in SOLUTIONS for v in VEHICLES[1:] for k in ("along", "along_sigma")
+    }
+    assert selected == expected
+
+
+def test_null_logger_accepts_every_call():
+    with NullLogger() as lg:
+        lg.log_world({"a": np.zeros((2, 2))}, {"a": 3.2}, [], [], GEO)
+        lg.log_truth(0.0, TrafficStep(t_s=0.0, vehicles={}))
+        lg.log_estimates(0.0, "s", ["a"], np.zeros((1, 2)), np.eye(2)[None])
+        lg.log_links(0.0, "uwb", np.zeros((1, 3)), np.ones((1, 3)), ["los"])
+        lg.log_satellites(0.0, "a", [1], [0.0], [1.0], [True])
+        lg.log_errors(0.0, "s", "a", 0.1, 0.2, 0.3, 0.4, 1.0, 1.0, 8, 0)
+    lg.close()
+    lg.abort()
+
+
+def test_close_failure_leaves_no_file_and_keeps_the_old_one(tmp_path, monkeypatch):
+    """If close() raises, nothing appears under the final name and no temp file is left."""
+    path = tmp_path / "replay.rrd"
+    path.write_bytes(b"previous run")
+    lg = RerunReplayLogger(path)
+    lg.log_errors(0.0, "s", "a", 0.1, 0.2, 0.3, 0.4, 1.0, 1.0, 8, 0)
+
+    def broken_flush(*args, **kwargs):
+        raise OSError("disk full")
+
+    monkeypatch.setattr(lg._rec, "flush", broken_flush)
+    with pytest.raises(OSError, match="disk full"):
+        lg.close()
+    assert path.read_bytes() == b"previous run"
+    assert sorted(os.listdir(tmp_path)) == ["replay.rrd"]
+    with pytest.raises(RuntimeError, match="closed"):
+        lg.log_errors(0.1, "s", "a", 0.1, 0.2, 0.3, 0.4, 1.0, 1.0, 8, 0)
+
+
+def test_context_manager_aborts_on_error(tmp_path):
+    path = tmp_path / "replay.rrd"
+    with pytest.raises(ValueError, match="unknown status"):
+        with RerunReplayLogger(path) as lg:
+            lg.log_links(0.0, "uwb", np.zeros((1, 3)), np.ones((1, 3)), ["blocked"])
+    assert os.listdir(tmp_path) == []
+
+
+def test_temp_file_is_hidden_until_close(tmp_path):
+    path = tmp_path / "replay.rrd"
+    lg = RerunReplayLogger(path)
+    lg.log_errors(0.0, "s", "a", 0.1, 0.2, 0.3, 0.4, 1.0, 1.0, 8, 0)
+    assert not path.exists()
+    lg.close()
+    lg.close()  # idempotent
+    assert path.exists() and os.listdir(tmp_path) == ["replay.rrd"]

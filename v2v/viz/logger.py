@@ -1,0 +1,178 @@
+"""The replay-logger interface and its do-nothing implementation.
+
+Pipeline code (``v2v.run`` and the experiments) logs a run through :class:`ReplayLogger`
+and never imports rerun: :class:`~v2v.viz.rerun_logger.RerunReplayLogger` is the one
+implementation that does (STYLE.md, "one boundary per outside system"), and
+:class:`NullLogger` accepts every call and does nothing (tests, ``--no-replay``).
+
+Conventions of every call
+-------------------------
+* ``t_s``: simulation time in seconds (the ``sim_time`` timeline of the recording).
+* Positions are **net XY** metres (plus height ``z`` where 3-D), see :mod:`v2v.frames`.
+* Covariances ``cov_en_m2`` are east/north (ENU) in m²; the logger rotates them into
+  net XY by the projection's grid convergence before drawing.
+* Angles are radians; azimuths clockwise from true north.
+
+A logger is used once: log, then :meth:`ReplayLogger.close` (writes the file atomically)
+or :meth:`ReplayLogger.abort` (writes nothing). As a context manager it closes on success
+and aborts when the block raises, so a failed run never leaves a replay that looks whole::
+
+    with RerunReplayLogger(out / "replay.rrd") as replay:
+        replay.log_world(...)
+        for step in steps:
+            replay.log_truth(step.t_s, step)
+
+The entity layout of the recording is documented in :mod:`v2v.viz.blueprint`.
+"""
+
+from __future__ import annotations
+
+from abc import ABC, abstractmethod
+from collections.abc import Mapping, Sequence
+from typing import Any, Protocol
+
+import numpy as np
+from numpy.typing import ArrayLike, NDArray
+
+from v2v.frames import GeoReference
+from v2v.traffic.snapshot import TrafficStep
+
+LINK_KINDS = ("uwb", "bearing")
+LINK_STATUSES = ("los", "nlos", "rejected")
+
+
+class Footprint(Protocol):
+    """What the logger needs from a building or foliage area (``v2v.world.buildings``)."""
+
+    id: str
+    footprint_xy_m: NDArray[np.float64]  # (K, 2) net XY, not closed
+    height_m: float
+
+
+class ReplayLogger(ABC):
+    """Everything a run shows in its replay. See the module docstring for conventions."""
+
+    @abstractmethod
+    def log_world(
+        self,
+        lanes: Mapping[str, ArrayLike],
+        lane_widths: Mapping[str, float],
+        buildings: Sequence[Footprint],
+        foliage: Sequence[Footprint],
+        geo: GeoReference,
+    ) -> None:
+        """Static scene, logged once: lane centre lines ``(k, 2)`` (or ``(k, 3)``) in net
+        XY with their widths in metres, extruded buildings and foliage, and the
+        geo-reference used for the map view and the ENU -> net XY rotation."""
+
+    @abstractmethod
+    def log_truth(self, t_s: float, step: TrafficStep) -> None:
+        """True vehicles at ``t_s`` as 3-D boxes (and geodetic points for the map)."""
+
+    @abstractmethod
+    def log_estimates(
+        self,
+        t_s: float,
+        solution: str,
+        vehicle_ids: Sequence[str],
+        est_xy_m: ArrayLike,
+        cov_en_m2: ArrayLike,
+    ) -> None:
+        """Estimated positions ``(n, 2)`` net XY of one solution with their horizontal
+        covariance ``(n, 2, 2)`` (east/north, m²), drawn as uncertainty ellipses."""
+
+    @abstractmethod
+    def log_links(
+        self,
+        t_s: float,
+        kind: str,
+        a_xyz_m: ArrayLike,
+        b_xyz_m: ArrayLike,
+        status: Sequence[str],
+    ) -> None:
+        """Radio (``kind="uwb"``) or bearing (``"bearing"``) links ``a -> b``, ``(m, 3)``
+        each, coloured by ``status`` in ``("los", "nlos", "rejected")``. ``m = 0`` clears
+        the links of that kind."""
+
+    @abstractmethod
+    def log_satellites(
+        self,
+        t_s: float,
+        vehicle_id: str,
+        prn: ArrayLike,
+        az_rad: ArrayLike,
+        el_rad: ArrayLike,
+        los: ArrayLike,
+    ) -> None:
+        """Satellites tracked by one vehicle: sky plot coloured line-of-sight / NLOS."""
+
+    @abstractmethod
+    def log_errors(
+        self,
+        t_s: float,
+        solution: str,
+        vehicle_id: str,
+        along_m: float,
+        across_m: float,
+        sigma_along_m: float,
+        sigma_across_m: float,
+        nees: float,
+        nis: float,
+        n_sats: int,
+        rejections: int,
+    ) -> None:
+        """One row of the error time series of ``vehicle_id`` under ``solution``."""
+
+    @abstractmethod
+    def close(self) -> None:
+        """Flush everything and publish the recording (atomically). Idempotent."""
+
+    def abort(self) -> None:  # noqa: B027 - optional hook, nothing to discard by default
+        """Discard the recording without publishing it. Idempotent."""
+
+    def __enter__(self) -> ReplayLogger:
+        return self
+
+    def __exit__(self, exc_type: Any, exc: Any, tb: Any) -> None:
+        if exc_type is None:
+            self.close()
+        else:
+            self.abort()
+
+
+class NullLogger(ReplayLogger):
+    """Accepts every call and records nothing (tests, ``--no-replay``)."""
+
+    def log_world(self, lanes, lane_widths, buildings, foliage, geo) -> None:
+        pass
+
+    def log_truth(self, t_s, step) -> None:
+        pass
+
+    def log_estimates(self, t_s, solution, vehicle_ids, est_xy_m, cov_en_m2) -> None:
+        pass
+
+    def log_links(self, t_s, kind, a_xyz_m, b_xyz_m, status) -> None:
+        pass
+
+    def log_satellites(self, t_s, vehicle_id, prn, az_rad, el_rad, los) -> None:
+        pass
+
+    def log_errors(
+        self,
+        t_s,
+        solution,
+        vehicle_id,
+        along_m,
+        across_m,
+        sigma_along_m,
+        sigma_across_m,
+        nees,
+        nis,
+        n_sats,
+        rejections,
+    ) -> None:
+        pass
+
+    def close(self) -> None:
+        pass
