@@ -30,6 +30,8 @@ def _add_run_options(p: argparse.ArgumentParser) -> None:
         help="override a scenario field, e.g. --set clusters.0.vehicles=20 (repeatable; values are TOML)",
     )
     p.add_argument("--quiet", action="store_true", help="no progress bar and no table")
+    p.add_argument("--no-replay", action="store_true", help="do not write replay.rrd (rerun recording)")
+    p.add_argument("--save-measurements", action="store_true", help="also write measurements.parquet (every raw measurement)")
 
 
 def build_parser() -> argparse.ArgumentParser:
@@ -85,7 +87,11 @@ def _cmd_run(args, demo: bool = False) -> int:
 
     scenario = _load(args)
     out = args.out or Path("runs") / scenario.name  # type: ignore[attr-defined]
-    result = run_scenario(scenario, out, quiet=args.quiet)  # type: ignore[arg-type]
+    base = Path(args.scenario).resolve().parent if getattr(args, "scenario", None) else None
+    result = run_scenario(
+        scenario, out, quiet=args.quiet, replay=not args.no_replay,  # type: ignore[arg-type]
+        save_measurements=args.save_measurements, base_dir=base,
+    )
     if not args.quiet:
         _print_summary(result.summary, out)
     return 0

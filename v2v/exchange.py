@@ -19,20 +19,10 @@ from dataclasses import dataclass
 from typing import Any
 
 import numpy as np
-from pydantic import BaseModel, ConfigDict, Field
 
+from v2v.config.sections import ExchangeSection
 
-class ExchangeConfig(BaseModel):
-    """Scenario section ``[exchange]``."""
-
-    model_config = ConfigDict(extra="forbid", frozen=True)
-    latency_s: float = Field(default=0.0, ge=0.0, le=10.0)
-    loss_probability: float = Field(default=0.0, ge=0.0, le=1.0)
-    filter_lag_s: float | None = Field(default=None, ge=0.0, le=10.0)
-
-    @property
-    def lag_s(self) -> float:
-        return self.latency_s if self.filter_lag_s is None else self.filter_lag_s
+ExchangeConfig = ExchangeSection  # scenario section [exchange]
 
 
 @dataclass(frozen=True, slots=True)

@@ -14,7 +14,6 @@ renamed when complete, so an interrupted or failed run leaves nothing that looks
 
 from __future__ import annotations
 
-import json
 import sys
 import time
 from dataclasses import dataclass
@@ -27,8 +26,9 @@ from v2v import __version__
 from v2v.config.scenario import Scenario, save_resolved
 from v2v.errors import UserError
 from v2v.frames import GeoReference
-from v2v.io.atomic import RunFolder, atomic_write_json
+from v2v.io.atomic import RunFolder, atomic_write_json, atomic_write_parquet
 from v2v.io.tables import ParquetStream
+from v2v.sensors.measurements import GnssEpoch
 from v2v.traffic.snapshot import EventKind, TrafficStep
 
 
@@ -45,7 +45,7 @@ def resolve_network(scenario: Scenario) -> ResolvedNetwork:
     from v2v import nets
 
     cfg = scenario.network
-    built = nets.resolve_net(name=cfg.name or None, net_file=cfg.net_file or None, polygon_files=cfg.polygon_files)
+    built = nets.resolve_net({"name": cfg.name or None, "net_file": cfg.net_file or None})
     if cfg.route_edges:
         edges = tuple(cfg.route_edges)
     else:
@@ -65,7 +65,14 @@ def resolve_network(scenario: Scenario) -> ResolvedNetwork:
         origin_lon_deg=cfg.georef_lon_deg,
         origin_h_m=0.0,
     )
-    polys = tuple(Path(p) for p in built.poly_paths)
+    if cfg.polygon_files:
+        polys = tuple(Path(p) for p in cfg.polygon_files)
+        for i, p in enumerate(polys):
+            if not p.is_file():
+                raise UserError(f"polygon file {str(p)!r} not found", field=f"network.polygon_files.{i}",
+                                fix="give an existing SUMO .poly.xml/.add.xml, or leave the list empty")
+    else:
+        polys = (Path(built.poly_path),) if built.poly_path else ()
     return ResolvedNetwork(net_path=Path(built.net_path), poly_paths=polys, route_edges=edges, georef=georef)
 
 
@@ -99,59 +106,306 @@ class RunResult:
     summary: dict[str, Any]
 
 
-def _progress(total_steps: int, quiet: bool, desc: str):
+def _progress(total: int, quiet: bool, desc: str):
     from tqdm import tqdm
 
-    return tqdm(total=total_steps, desc=desc, unit="step", disable=quiet or not sys.stderr.isatty(), leave=False)
+    return tqdm(total=total, desc=desc, unit="step", disable=quiet or not sys.stderr.isatty(), leave=False)
 
 
-def run_scenario(scenario: Scenario, out_dir: Path, *, quiet: bool = False) -> RunResult:
-    """Run one scenario end to end and write its run folder. Returns the summary."""
+def _say(quiet: bool, msg: str) -> None:
+    if not quiet:
+        print(msg, file=sys.stderr, flush=True)
+
+
+def run_scenario(
+    scenario: Scenario,
+    out_dir: Path,
+    *,
+    quiet: bool = False,
+    replay: bool = True,
+    save_measurements: bool = False,
+    base_dir: Path | None = None,
+) -> RunResult:
+    """Run one scenario end to end and write its run folder. Returns the summary.
+
+    Stages (wall time of each is reported in ``summary.json`` under ``timing_s``):
+    traffic (SUMO) -> world geometry -> sensors (GNSS, UWB, bearing) -> V2V exchange ->
+    one EKF per (cluster, solution) on the same measurements -> metrics -> outputs.
+    """
+    import pandas as pd
+
+    from v2v.exchange import V2VExchange
+    from v2v.metrics.summary import json_safe, paper_table, solution_statistics
+    from v2v.pipeline import (
+        STREAM_BEARING,
+        STREAM_EXCHANGE,
+        STREAM_GNSS,
+        STREAM_UWB,
+        build_bearing,
+        build_filter,
+        build_gnss,
+        build_uwb,
+        child_seeds,
+        exchange_stream,
+        run_solution,
+    )
+    from v2v.sensors.gnss.spp import spp_from_epoch
+    from v2v.sensors.gnss.time import utc_to_gps_s
     from v2v.traffic.sumo import NetFiles, SumoSimulation
+    from v2v.world.buildings import World, load_polygons
+    from v2v.world.occlusion import OcclusionGeometry
 
     wall0 = time.perf_counter()
+    timing: dict[str, float] = {}
     net = resolve_network(scenario)
+    seeds = child_seeds(scenario.seed)
+    gps_start = float(utc_to_gps_s(scenario.start_utc))
     n_steps = int(round(scenario.duration_s / scenario.step_length_s))
-    events: list[dict[str, Any]] = []
+    events_log: list[dict[str, Any]] = []
     with RunFolder(Path(out_dir)) as tmp:
         save_resolved(scenario, tmp / "scenario.resolved.toml")
+
+        # 1. traffic ------------------------------------------------------------------
+        t0 = time.perf_counter()
         truth = ParquetStream(tmp / "truth.parquet")
         files = NetFiles(net_path=net.net_path, poly_paths=net.poly_paths, route_edges=net.route_edges)
-        t_end = 0.0
+        steps: list[TrafficStep] = []
         with SumoSimulation(scenario, files, net.georef, seed=scenario.seed) as sim:
             step = sim.snapshot()
+            steps.append(step)
             truth.extend(_truth_rows(step))
             vehicles = sim.cluster_vehicle_ids()
-            with _progress(n_steps, quiet, f"v2v {scenario.name}") as bar:
+            lanes, lane_widths = sim.lane_geometry()
+            with _progress(n_steps, quiet, f"SUMO {scenario.name}") as bar:
                 for _ in range(n_steps):
                     step = sim.step()
-                    truth.extend(_truth_rows(step))
-                    events.extend({"t_s": e.t_s, "kind": e.kind.value, "vehicle": e.vehicle_id, "detail": e.detail} for e in step.events)
-                    bar.update(1)
-                    t_end = step.t_s
                     if not step.vehicles:
                         break  # every cluster vehicle has arrived
+                    steps.append(step)
+                    truth.extend(_truth_rows(step))
+                    events_log.extend(
+                        {"t_s": e.t_s, "kind": e.kind.value, "vehicle": e.vehicle_id, "detail": e.detail} for e in step.events
+                    )
+                    bar.update(1)
             stats = sim.stats
         truth.close()
+        t_end = steps[-1].t_s
+        timing["traffic"] = time.perf_counter() - t0
+
+        # 2. world --------------------------------------------------------------------
+        t0 = time.perf_counter()
+        world = load_polygons(list(net.poly_paths)) if net.poly_paths else World()
+        occlusion = OcclusionGeometry(world)
+        timing["world"] = time.perf_counter() - t0
+
+        # 3. sensors ------------------------------------------------------------------
+        used = {s for sol in scenario.solutions for s in sol.sensors}
+        t0 = time.perf_counter()
+        _say(quiet, f"synthesizing measurements for {len(vehicles)} vehicles over {t_end:.1f} s ...")
+        gnss = build_gnss(scenario, gps_start, seeds[STREAM_GNSS], occlusion, net.georef, base_dir)
+        gnss_epochs: list[tuple[float, dict[str, GnssEpoch]]] = []
+        for st in steps:
+            for eps in gnss.feed(st):
+                if eps:
+                    t_e = next(iter(eps.values())).t_s
+                    gnss_epochs.append((t_e, eps))
+        timing["gnss"] = time.perf_counter() - t0
+        t0 = time.perf_counter()
+        uwb = None
+        if "uwb" in used:
+            network = build_uwb(scenario, vehicles, seeds[STREAM_UWB])
+            uwb = network.simulate(steps, np.random.default_rng(seeds[STREAM_UWB].spawn(2)[1]), occlusion=occlusion)
+        timing["uwb"] = time.perf_counter() - t0
+        t0 = time.perf_counter()
+        bearings = None
+        if "bearing" in used:
+            bearings = build_bearing(scenario).simulate(steps, np.random.default_rng(seeds[STREAM_BEARING]), occlusion=occlusion)
+        timing["bearing"] = time.perf_counter() - t0
+        if save_measurements:
+            t0 = time.perf_counter()
+            from v2v.io.measurements import measurements_table
+
+            atomic_write_parquet(tmp / "measurements.parquet", measurements_table(gnss_epochs, uwb, bearings))
+            timing["measurements_io"] = time.perf_counter() - t0
+
+        # 4-5. exchange and estimation, per cluster -----------------------------------
+        truth_by_t = {round(st.t_s * 1e6): st for st in steps}
+
+        def truth_at(t: float) -> TrafficStep | None:
+            return truth_by_t.get(round(t * 1e6))
+
+        logger = _make_logger(tmp, replay)
+        t0 = time.perf_counter()
+        with logger:
+            logger.log_world(lanes, lane_widths, world.buildings, world.foliage, net.georef)
+            _log_truth_and_links(logger, steps, uwb, bearings, gnss_epochs)
+            timing["replay_static_truth"] = time.perf_counter() - t0
+            records = []
+            updates: dict[str, pd.DataFrame] = {}
+            t0 = time.perf_counter()
+            on_epoch = _epoch_logger(logger, net.georef) if replay else None
+            for ci, cluster in enumerate(scenario.clusters):
+                lead = f"{cluster.name}.{cluster.lead}"
+                members = [f"{cluster.name}.{i}" for i in range(cluster.vehicles)]
+                others = [v for v in members if v != lead]
+                exch = V2VExchange(scenario.exchange, lead, np.random.default_rng(seeds[STREAM_EXCHANGE].spawn(ci + 1)[ci]))
+                base_state: dict[str, Any] = {"x": None}
+
+                def lead_base(ep: GnssEpoch, _s=base_state) -> np.ndarray | None:
+                    res = spp_from_epoch(ep, x0_ecef_m=_s["x"], gps_start_s=gps_start)
+                    if res.valid:
+                        _s["x"] = res.position_ecef_m
+                    return _s["x"]
+
+                cl_epochs = [(t, {v: e for v, e in eps.items() if v in members}) for t, eps in gnss_epochs]
+                output_times = [t for t, eps in cl_epochs if lead in eps]
+                events, _ = exchange_stream(cl_epochs, uwb, bearings, exch, lead_base, output_times)
+                bearing_vehicles = members if scenario.sensors.bearing.measuring == "all" else [
+                    v for v in scenario.sensors.bearing.measuring if v in members]
+                uwb_pairs = _uwb_pairs(scenario, members)
+                for sol in scenario.solutions:
+                    ekf = build_filter(sol, lead, others, bearing_vehicles, uwb_pairs)
+                    rec = run_solution(sol, ekf, events, output_times, truth_at, lead, others, on_epoch=on_epoch)
+                    if rec.rows:
+                        df = pd.DataFrame(rec.rows)
+                        df.insert(1, "cluster", cluster.name)
+                        records.append(df)
+                    key = sol.name if len(scenario.clusters) == 1 else f"{cluster.name}/{sol.name}"
+                    updates[key] = pd.DataFrame(rec.updates)
+                exchange_stats = exch.stats
+            timing["estimation"] = time.perf_counter() - t0
+        epochs = pd.concat(records, ignore_index=True) if records else pd.DataFrame()
+
+        # 6. metrics and outputs -------------------------------------------------------
+        t0 = time.perf_counter()
+        if len(epochs):
+            atomic_write_parquet(tmp / "epochs.parquet", epochs)
+            sol_stats = solution_statistics(epochs, updates)
+        else:
+            sol_stats = {}
+        timing["metrics_io"] = time.perf_counter() - t0
         wall = time.perf_counter() - wall0
-        counts = {k.value: sum(1 for e in events if e["kind"] == k.value) for k in EventKind}
-        summary = {
+        counts = {k.value: sum(1 for e in events_log if e["kind"] == k.value) for k in EventKind}
+        n_sats = [ep.n for _, eps in gnss_epochs for ep in eps.values()]
+        nlos = sum(int((~ep.los).sum()) for _, eps in gnss_epochs for ep in eps.values())
+        summary: dict[str, Any] = {
             "v2v_version": __version__,
             "scenario": scenario.name,
             "seed": scenario.seed,
-            "network": str(net.net_path.name),
+            "network": net.net_path.name,
             "simulated_s": round(t_end, 6),
             "requested_s": scenario.duration_s,
             "wall_s": round(wall, 3),
             "real_time_factor": round(t_end / wall, 2) if wall > 0 else None,
+            "timing_s": {k: round(v, 3) for k, v in timing.items()},
             "warmup_s": stats.warmup_s,
             "vehicles": vehicles,
             "leads": [f"{c.name}.{c.lead}" for c in scenario.clusters],
+            "solutions": [s.name for s in scenario.solutions],
+            "gnss": {
+                "epochs": len(gnss_epochs),
+                "satellites_tracked_mean": float(np.mean(n_sats)) if n_sats else 0.0,
+                "nlos_fraction": nlos / max(sum(n_sats), 1),
+            },
+            "uwb": _uwb_summary(uwb),
+            "bearing": {"measurements": int(bearings.n) if bearings is not None else 0},
+            "exchange": {"sent": exchange_stats.sent, "lost": exchange_stats.lost, "late": exchange_stats.late}
+            if scenario.clusters else {},
             "event_counts": counts,
-            "events": events[:1000],
+            "events": events_log[:1000],
             "truth_rows": truth.rows_written,
+            "statistics": sol_stats,
         }
         if t_end + 1e-9 < scenario.duration_s - scenario.step_length_s:
             summary["note"] = f"all cluster vehicles reached the end of the route at t = {t_end:.1f} s"
-        atomic_write_json(tmp / "summary.json", json.loads(json.dumps(summary, default=float)))
+        summary["table"] = paper_table(sol_stats) if sol_stats else ""
+        atomic_write_json(tmp / "summary.json", json_safe(summary))
     return RunResult(out_dir=Path(out_dir), summary=summary)
+
+
+def _uwb_pairs(scenario: Scenario, members: list[str]) -> list[tuple[str, str]]:
+    from itertools import combinations
+
+    sec = scenario.sensors.uwb
+    if sec.pairs == "all":
+        return list(combinations(members, 2))
+    return [(a, b) for a, b in sec.pairs if a in members and b in members]
+
+
+def _uwb_summary(uwb) -> dict[str, Any]:
+    if uwb is None or uwb.n == 0:
+        return {"ranges": 0}
+    err = uwb.range_m - uwb.true_range_m
+    nlos = ~uwb.los
+    return {
+        "ranges": int(uwb.n),
+        "nlos_fraction": float(nlos.mean()),
+        "error_mean_m": float(err.mean()),
+        "error_std_m": float(err.std()),
+        "nlos_error_mean_m": float(err[nlos].mean()) if nlos.any() else None,
+    }
+
+
+def _make_logger(folder: Path, replay: bool):
+    if not replay:
+        from v2v.viz.logger import NullLogger
+
+        return NullLogger()
+    from v2v.viz.rerun_logger import RerunReplayLogger
+
+    return RerunReplayLogger(folder / "replay.rrd")
+
+
+def _log_truth_and_links(logger, steps, uwb, bearings, gnss_epochs) -> None:
+    from v2v.viz.logger import NullLogger
+
+    if isinstance(logger, NullLogger):
+        return
+    uwb_t = uwb.t_s if uwb is not None else np.zeros(0)
+    br_t = bearings.t_s if bearings is not None else np.zeros(0)
+    sky_every = {round(t * 1e6): eps for t, eps in gnss_epochs if abs(t - round(t)) < 1e-6}  # 1 Hz sky plots
+    prev = -np.inf
+    for st in steps:
+        logger.log_truth(st.t_s, st)
+        for kind, tt, meas in (("uwb", uwb_t, uwb), ("bearing", br_t, bearings)):
+            if meas is None:
+                continue
+            idx = np.flatnonzero((tt > prev) & (tt <= st.t_s + 1e-9))
+            idx = [k for k in idx if meas.a[k] in st.vehicles and meas.b[k] in st.vehicles]
+            if idx:
+                a = np.array([st.vehicles[meas.a[k]].xyz_m for k in idx])
+                b = np.array([st.vehicles[meas.b[k]].xyz_m for k in idx])
+                logger.log_links(st.t_s, kind, a, b, ["los" if meas.los[k] else "nlos" for k in idx])
+        eps = sky_every.get(round(st.t_s * 1e6))
+        if eps:
+            for v, ep in eps.items():
+                logger.log_satellites(st.t_s, v, ep.prn, ep.azimuth_rad, ep.elevation_rad, ep.los)
+        prev = st.t_s
+
+
+def _epoch_logger(logger, georef: GeoReference):
+    """Callback logging each solution's estimates (net XY, around the lead's true antenna) and errors."""
+    cache: dict[str, float] = {}
+
+    def on_epoch(t_s: float, solution: str, ekf, step: TrafficStep, rows: list[dict[str, Any]]) -> None:
+        lead = ekf.layout.lead
+        lst = step.vehicles[lead]
+        if "gamma" not in cache:
+            cache["gamma"] = georef.grid_convergence_rad(float(lst.xyz_m[0]), float(lst.xyz_m[1]))
+        g = cache["gamma"]
+        c, s = np.cos(g), np.sin(g)
+        ids, xy, cov = [], [], []
+        for r in rows:
+            if not r["initialized"]:
+                continue
+            e, n = r["est_e_m"], r["est_n_m"]
+            ids.append(r["vehicle"])
+            xy.append([lst.xyz_m[0] + e * c - n * s, lst.xyz_m[1] + e * s + n * c])
+            cov.append([[r["cov_ee_m2"], r["cov_en_m2"]], [r["cov_en_m2"], r["cov_nn_m2"]]])
+            logger.log_errors(t_s, solution, r["vehicle"], r["along_err_m"], r["across_err_m"], r["sigma_along_m"],
+                              r["sigma_across_m"], r["nees_pos"], float("nan"), 0,
+                              int(r["rejected_pr"] + r["rejected_uwb"] + r["rejected_bearing"] + r["rejected_doppler"]))
+        if ids:
+            logger.log_estimates(t_s, solution, ids, np.array(xy), np.array(cov))
+
+    return on_epoch

@@ -21,6 +21,7 @@ from typing import Any
 import tomli_w
 from pydantic import BaseModel, ConfigDict, Field, ValidationError, field_validator, model_validator
 
+from v2v.config.sections import ExchangeSection, SensorsSection, SolutionSection, paper_solutions
 from v2v.errors import UserError
 
 DEFAULT_SCENARIO_PATH = Path(__file__).with_name("default.toml")
@@ -102,9 +103,9 @@ class Scenario(_Model):
     clusters: list[ClusterConfig] = Field(min_length=1)
     vehicle_types: dict[str, VehicleTypeConfig]
     background: BackgroundConfig = BackgroundConfig()
-    # Filled by the sensor and estimation layers (validated there).
-    sensors: dict[str, Any] = Field(default_factory=dict)
-    solutions: list[dict[str, Any]] = Field(default_factory=list)
+    sensors: SensorsSection = SensorsSection()
+    exchange: ExchangeSection = ExchangeSection()
+    solutions: list[SolutionSection] = Field(default_factory=paper_solutions)
 
     @field_validator("start_utc")
     @classmethod
@@ -126,7 +127,28 @@ class Scenario(_Model):
                         f"cluster {c.name!r} uses vehicle_type {t!r}, which is not defined; "
                         f"defined: {sorted(self.vehicle_types)}"
                     )
+        sol_names = [s.name for s in self.solutions]
+        if len(set(sol_names)) != len(sol_names):
+            raise ValueError("solution names must be unique")
+        for s in self.solutions:
+            for sensor in s.sensors:
+                if not getattr(self.sensors, sensor).enabled:
+                    raise ValueError(
+                        f"solution {s.name!r} uses {sensor!r} but sensors.{sensor}.enabled = false; "
+                        f"enable the sensor or drop it from the solution"
+                    )
+        ids = set(self.vehicle_ids())
+        named = list(self.sensors.uwb.vehicle_profiles)
+        named += [v for pair in (self.sensors.uwb.pairs if self.sensors.uwb.pairs != "all" else []) for v in pair]
+        named += list(self.sensors.bearing.measuring) if self.sensors.bearing.measuring != "all" else []
+        unknown = sorted(set(named) - ids)
+        if unknown:
+            raise ValueError(f"sensors name unknown vehicle(s) {unknown}; vehicles are {sorted(ids)}")
         return self
+
+    def vehicle_ids(self) -> list[str]:
+        """Cluster vehicle ids, ``<cluster>.<index>`` in departure order."""
+        return [f"{c.name}.{i}" for c in self.clusters for i in range(c.vehicles)]
 
     def to_toml(self) -> str:
         data = self.model_dump(mode="json")
@@ -271,6 +293,8 @@ def load_scenario(path: str | Path | None = None, overrides: list[str] | tuple[s
             user["clusters"] = [deep_merge(base_cluster, c) if isinstance(c, dict) else c for c in user["clusters"]]
         data = deep_merge(data, user)
         source = str(p)
+    if "solutions" not in data:
+        data["solutions"] = [sol.model_dump(mode="json") for sol in paper_solutions()]
     for ov in overrides:
         data = apply_override(data, ov)
     if overrides:

@@ -9,7 +9,7 @@ plus the body-frame lever arm), azimuths are radians clockwise from north.
 from __future__ import annotations
 
 from dataclasses import dataclass, field
-from enum import Enum
+from enum import StrEnum
 
 import numpy as np
 from numpy.typing import NDArray
@@ -48,7 +48,7 @@ class VehicleState:
     height_m: float
 
 
-class EventKind(str, Enum):
+class EventKind(StrEnum):
     DEPARTED = "departed"
     ARRIVED = "arrived"
     TELEPORT = "teleport"

@@ -393,10 +393,14 @@ class SumoSimulation:
     def cluster_vehicle_ids(self) -> list[str]:
         return list(self._meta)
 
-    def lane_shapes(self) -> dict[str, np.ndarray]:
-        """Centre-line polylines (net XY) of every non-internal lane, for metrics and replay."""
+    def lane_geometry(self) -> tuple[dict[str, np.ndarray], dict[str, float]]:
+        """Centre-line polylines (net XY) and widths (m) of every non-internal lane."""
         tc = self._traci
-        return {lid: np.asarray(tc.lane.getShape(lid), dtype=float) for lid in tc.lane.getIDList() if not lid.startswith(":")}
+        ids = [lid for lid in tc.lane.getIDList() if not lid.startswith(":")]
+        return (
+            {lid: np.asarray(tc.lane.getShape(lid), dtype=float) for lid in ids},
+            {lid: float(tc.lane.getWidth(lid)) for lid in ids},
+        )
 
 
 def _one_line(exc: BaseException) -> str:

@@ -1,0 +1,133 @@
+"""Scenario sections for the sensors, the V2V exchange and the solutions.
+
+These are the *user-facing* fields (units in names, degrees at this edge). The builders
+in :mod:`v2v.pipeline` turn them into the sensor and filter parameter objects.
+"""
+
+from __future__ import annotations
+
+from typing import Literal
+
+from pydantic import BaseModel, ConfigDict, Field, field_validator, model_validator
+
+
+class _Model(BaseModel):
+    model_config = ConfigDict(extra="forbid", frozen=True)
+
+
+class GnssErrorsSection(_Model):
+    """Each GNSS error model, switchable on its own (all on by default)."""
+
+    receiver_clock: bool = True
+    ionosphere: bool = True
+    troposphere: bool = True
+    satellite_orbit: bool = True
+    satellite_clock: bool = True
+    multipath: bool = True
+    noise: bool = True
+    foliage: bool = True
+    nlos: bool = True
+
+
+class GnssSection(_Model):
+    enabled: bool = True
+    rate_hz: float = Field(default=10.0, gt=0.0, le=100.0)
+    elevation_mask_deg: float = Field(default=10.0, ge=0.0, lt=90.0)
+    # "nominal" = the built-in 24-slot constellation at start_utc, or a RINEX 2/3 nav file path.
+    ephemeris: str = "nominal"
+    oscillator: Literal["TCXO", "OCXO"] = "TCXO"
+    errors: GnssErrorsSection = GnssErrorsSection()
+
+
+class UwbSection(_Model):
+    enabled: bool = True
+    profile: str = "mssi"  # mssi | tdc | ideal
+    vehicle_profiles: dict[str, str] = Field(default_factory=dict)  # per vehicle id
+    pairs: Literal["all"] | list[tuple[str, str]] = "all"
+
+
+class BearingSection(_Model):
+    enabled: bool = True
+    sigma_deg: float = Field(default=0.5, gt=0.0, le=30.0)
+    field_of_view_deg: float = Field(default=360.0, gt=0.0, le=360.0)
+    max_range_m: float = Field(default=150.0, gt=0.0)
+    rate_hz: float = Field(default=10.0, gt=0.0, le=100.0)
+    azimuth_sigma_deg: float = Field(default=0.1, ge=0.0, le=30.0)
+    measuring: Literal["all"] | list[str] = "all"
+
+
+class SensorsSection(_Model):
+    gnss: GnssSection = GnssSection()
+    uwb: UwbSection = UwbSection()
+    bearing: BearingSection = BearingSection()
+
+
+SENSOR_NAMES = ("gnss", "uwb", "bearing")
+
+
+class ExchangeSection(_Model):
+    """V2V message exchange to the lead's filter (see :mod:`v2v.exchange`)."""
+
+    latency_s: float = Field(default=0.0, ge=0.0, le=10.0)
+    loss_probability: float = Field(default=0.0, ge=0.0, le=1.0)
+    filter_lag_s: float | None = Field(default=None, ge=0.0, le=10.0)
+
+    @property
+    def lag_s(self) -> float:
+        return self.latency_s if self.filter_lag_s is None else self.filter_lag_s
+
+
+class SolutionSection(_Model):
+    """One filter configuration. Every solution processes the same measurements.
+
+    ``*_sigma_*`` are the *filter's* assumed noises (paper Table 1 defaults), not the
+    world's: where the filter deliberately differs from the simulated errors (the paper
+    ignored UWB bias and scale factor), that is set here.
+    """
+
+    name: str
+    sensors: list[str] = Field(min_length=1)
+    azimuth: Literal["known", "estimated"] = "known"
+    uwb_error_states: bool = False
+    pseudorange_sigma_m: float = Field(default=5.0, gt=0.0)
+    doppler_sigma_mps: float = Field(default=0.1, gt=0.0)
+    uwb_sigma_m: float = Field(default=0.5, gt=0.0)
+    bearing_sigma_deg: float = Field(default=0.5, gt=0.0)
+    significance: float = Field(default=0.001, gt=0.0, lt=1.0)
+    velocity_sigma_horizontal_mps: float = Field(default=10.0, gt=0.0)
+    velocity_sigma_vertical_mps: float = Field(default=1.0, gt=0.0)
+    velocity_tau_s: float = Field(default=2.0, gt=0.0)
+    clock_drift_sigma_mps: float = Field(default=1000.0, gt=0.0)
+    clock_drift_tau_s: float = Field(default=10.0, gt=0.0)
+    height_aiding_sigma_m: float | None = Field(default=None, gt=0.0)
+
+    @field_validator("sensors")
+    @classmethod
+    def _known_sensors(cls, v: list[str]) -> list[str]:
+        bad = [s for s in v if s not in SENSOR_NAMES]
+        if bad:
+            raise ValueError(f"unknown sensor(s) {bad}; known: {list(SENSOR_NAMES)}")
+        if "gnss" not in v:
+            raise ValueError("every solution needs 'gnss' (the relative DGPS backbone)")
+        return v
+
+    @model_validator(mode="after")
+    def _azimuth_needs_bearing(self) -> SolutionSection:
+        if self.azimuth == "estimated" and "bearing" not in self.sensors:
+            raise ValueError("azimuth = 'estimated' needs the 'bearing' sensor in this solution")
+        if self.uwb_error_states and "uwb" not in self.sensors:
+            raise ValueError("uwb_error_states needs the 'uwb' sensor in this solution")
+        return self
+
+
+def paper_solutions() -> list[SolutionSection]:
+    """The paper's comparisons (Petovello et al. sec. 5): four sensor sets, azimuth known,
+    plus the two azimuth-estimated bearing variants (sec. 5.3)."""
+    return [
+        SolutionSection(name="GPS", sensors=["gnss"]),
+        SolutionSection(name="GPS+UWB", sensors=["gnss", "uwb"]),
+        SolutionSection(name="GPS+Bearing", sensors=["gnss", "bearing"]),
+        SolutionSection(name="GPS+UWB+Bearing", sensors=["gnss", "uwb", "bearing"]),
+        SolutionSection(name="GPS+Bearing az-est", sensors=["gnss", "bearing"], azimuth="estimated"),
+        SolutionSection(name="GPS+UWB+Bearing az-est", sensors=["gnss", "uwb", "bearing"], azimuth="estimated"),
+    ]

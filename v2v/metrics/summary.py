@@ -1,0 +1,91 @@
+"""Per-solution, per-vehicle statistics for ``summary.json`` and the paper-style table."""
+
+from __future__ import annotations
+
+from typing import Any
+
+import numpy as np
+import pandas as pd
+
+from v2v.metrics.errors import chi2_band, consistency_summary, error_statistics
+
+NIS_DOF = 1  # every update is scalar
+
+
+def solution_statistics(epochs: pd.DataFrame, updates: dict[str, pd.DataFrame]) -> dict[str, Any]:
+    """Statistics per solution and vehicle over the epochs where the vehicle is initialized.
+
+    ``availability`` is the fraction of output epochs with an initialized estimate.
+    """
+    out: dict[str, Any] = {}
+    for sol, g_sol in epochs.groupby("solution", sort=False):
+        per_vehicle: dict[str, Any] = {}
+        for veh, g in g_sol.groupby("vehicle", sort=True):
+            ok = g[g["initialized"]]
+            entry: dict[str, Any] = {"epochs": int(len(g)), "availability": float(len(ok) / max(len(g), 1))}
+            for comp in ("along", "across", "up"):
+                entry[comp] = error_statistics(ok[f"{comp}_err_m"].to_numpy())
+                entry[f"{comp}_sigma_mean_m"] = float(ok[f"sigma_{comp}_m"].mean()) if len(ok) else float("nan")
+                # integrity: how often |error| exceeds the filter's own 3-sigma bound
+                if len(ok):
+                    entry[f"{comp}_exceeds_3sigma"] = float(np.mean(np.abs(ok[f"{comp}_err_m"]) > 3.0 * ok[f"sigma_{comp}_m"]))
+            entry["nees_pos"] = consistency_summary(ok["nees_pos"].to_numpy(), dof=3)
+            if "azimuth_err_rad" in g:
+                az = ok["azimuth_err_rad"].dropna().to_numpy()
+                entry["azimuth_err_deg"] = error_statistics(np.degrees(az))
+            per_vehicle[str(veh)] = entry
+        sol_entry: dict[str, Any] = {"vehicles": per_vehicle}
+        if "lead_azimuth_err_rad" in g_sol:
+            az = g_sol["lead_azimuth_err_rad"].dropna().to_numpy()
+            sol_entry["lead_azimuth_err_deg"] = error_statistics(np.degrees(az))
+        u = updates.get(str(sol))
+        if u is not None and len(u):
+            sol_entry["measurements"] = _update_stats(u)
+        out[str(sol)] = sol_entry
+    return out
+
+
+def _update_stats(u: pd.DataFrame) -> dict[str, Any]:
+    res: dict[str, Any] = {}
+    lo, hi = chi2_band(NIS_DOF)
+    for kind, g in u.groupby("kind", sort=True):
+        acc = g["accepted"].to_numpy(bool)
+        faulty = g["faulty"].to_numpy(bool)
+        nis = g["nis"].to_numpy(float)
+        clean = ~faulty
+        res[str(kind)] = {
+            "used": int(acc.sum()),
+            "rejected": int((~acc).sum()),
+            "true_rejections": int((~acc & faulty).sum()),
+            "false_rejections": int((~acc & ~faulty).sum()),
+            "missed_faults": int((acc & faulty).sum()),
+            "faulty": int(faulty.sum()),
+            "nis_mean_clean": float(nis[clean].mean()) if clean.any() else float("nan"),
+            "nis_frac_in_band_clean": float(np.mean((nis[clean] >= lo) & (nis[clean] <= hi))) if clean.any() else float("nan"),
+        }
+    return res
+
+
+def paper_table(stats: dict[str, Any]) -> str:
+    """Along/across mean and std per solution and vehicle (Petovello et al. tables 3-8), metres."""
+    lines = [f"{'solution':24s} {'vehicle':8s} {'along mean':>10s} {'along std':>9s} {'across mean':>11s} {'across std':>10s} {'avail':>6s}"]
+    for sol, s in stats.items():
+        for veh, e in s["vehicles"].items():
+            a, c = e["along"], e["across"]
+            lines.append(
+                f"{sol:24s} {veh:8s} {a['mean']:10.3f} {a['std']:9.3f} {c['mean']:11.3f} {c['std']:10.3f} {e['availability']:6.2f}"
+            )
+    return "\n".join(lines)
+
+
+def json_safe(obj: Any) -> Any:
+    """NaN/inf -> None, numpy scalars -> Python (JSON has no NaN)."""
+    if isinstance(obj, dict):
+        return {str(k): json_safe(v) for k, v in obj.items()}
+    if isinstance(obj, list | tuple):
+        return [json_safe(v) for v in obj]
+    if isinstance(obj, np.generic):
+        obj = obj.item()
+    if isinstance(obj, float) and not np.isfinite(obj):
+        return None
+    return obj
