@@ -89,3 +89,26 @@ def test_nets_list(capsys):
     out = capsys.readouterr().out
     for name in ("open_highway", "residential", "urban_canyon", "hospital_loop"):
         assert name in out
+
+
+def test_shipped_scenarios_validate(capsys):
+    from v2v.config.scenario import load_scenario
+
+    scen_dir = Path(__file__).resolve().parents[1] / "scenarios"
+    files = sorted(scen_dir.glob("*.toml"))
+    assert len(files) >= 4
+    for f in files:
+        sc = load_scenario(f)
+        assert sc.name == f.stem
+
+
+def test_replay_command_points_at_the_recording(tmp_path):
+    from v2v.cli import replay_command
+    from v2v.errors import UserError
+
+    with pytest.raises(UserError, match="RUN_DIR"):
+        replay_command(tmp_path)
+    (tmp_path / "replay.rrd").write_bytes(b"")
+    cmd = replay_command(tmp_path, web=True, port=9123)
+    assert cmd[-1] == str(tmp_path / "replay.rrd")
+    assert "--serve-web" in cmd and cmd[cmd.index("--bind") + 1] == "127.0.0.1" and "9123" in cmd

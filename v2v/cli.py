@@ -56,6 +56,11 @@ def build_parser() -> argparse.ArgumentParser:
     ni.add_argument("--name", required=True, help="name of the new net")
     ni.add_argument("--out", type=Path, default=None, help="folder to write into (default: sumo_nets/<name>)")
 
+    rp = sub.add_parser("replay", help="open a run's replay.rrd in the rerun viewer (or serve the web viewer)")
+    rp.add_argument("run_dir", type=Path, help="a run folder (or a .rrd file)")
+    rp.add_argument("--web", action="store_true", help="serve the web viewer on 127.0.0.1 instead of a native window")
+    rp.add_argument("--port", type=int, default=9090, help="web viewer port (with --web)")
+
     s = sub.add_parser("scenario", help="scenario files")
     ssub = s.add_subparsers(dest="scenario_cmd", required=True, parser_class=_Parser)
     sc = ssub.add_parser("check", help="validate a scenario and print it resolved")
@@ -136,6 +141,28 @@ def _cmd_nets(args) -> int:
     raise AssertionError(args.nets_cmd)
 
 
+def replay_command(run_dir: Path, web: bool = False, port: int = 9090) -> list[str]:
+    """The rerun command that opens a run's recording (native viewer, or web viewer on loopback)."""
+    import shutil
+
+    rrd = run_dir if run_dir.suffix == ".rrd" else run_dir / "replay.rrd"
+    if not rrd.is_file():
+        raise UserError(f"no replay at {rrd}", field="RUN_DIR", fix="give a run folder written without --no-replay")
+    exe = shutil.which("rerun", path=str(Path(sys.executable).parent)) or shutil.which("rerun") or "rerun"
+    if web:
+        return [exe, "--serve-web", "--bind", "127.0.0.1", "--web-viewer-port", str(port), str(rrd)]
+    return [exe, str(rrd)]
+
+
+def _cmd_replay(args) -> int:
+    import subprocess
+
+    cmd = replay_command(args.run_dir, args.web, args.port)
+    if args.web:
+        print(f"serving the web viewer on http://127.0.0.1:{args.port} (Ctrl-C to stop)", file=sys.stderr)
+    return subprocess.call(cmd)
+
+
 def _cmd_scenario(args) -> int:
     from v2v.config.scenario import load_scenario
 
@@ -206,6 +233,8 @@ def main(argv: list[str] | None = None) -> int:
             return _cmd_nets(args)
         if args.cmd == "scenario":
             return _cmd_scenario(args)
+        if args.cmd == "replay":
+            return _cmd_replay(args)
         if args.cmd == "sky":
             return _cmd_sky(args)
     except UserError as exc:
