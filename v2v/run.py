@@ -109,7 +109,7 @@ class RunResult:
 def _progress(total: int, quiet: bool, desc: str):
     from tqdm import tqdm
 
-    return tqdm(total=total, desc=desc, unit="step", disable=quiet or not sys.stderr.isatty(), leave=False)
+    return tqdm(total=total, desc=desc, disable=quiet or not sys.stderr.isatty(), leave=False)
 
 
 def _say(quiet: bool, msg: str) -> None:
@@ -244,6 +244,9 @@ def run_scenario(
             updates: dict[str, pd.DataFrame] = {}
             t0 = time.perf_counter()
             on_epoch = _epoch_logger(logger, net.georef) if replay else None
+            n_filters = len(scenario.clusters) * len(scenario.solutions)
+            _say(quiet or n_filters == 0, f"filtering: {len(scenario.solutions)} solution(s) x {len(scenario.clusters)} cluster(s) ...")
+            fbar = _progress(n_filters, quiet, "filters")
             for ci, cluster in enumerate(scenario.clusters):
                 lead = f"{cluster.name}.{cluster.lead}"
                 members = [f"{cluster.name}.{i}" for i in range(cluster.vehicles)]
@@ -272,7 +275,9 @@ def run_scenario(
                         records.append(df)
                     key = sol.name if len(scenario.clusters) == 1 else f"{cluster.name}/{sol.name}"
                     updates[key] = pd.DataFrame(rec.updates)
+                    fbar.update(1)
                 exchange_stats = exch.stats
+            fbar.close()
             timing["estimation"] = time.perf_counter() - t0
         epochs = pd.concat(records, ignore_index=True) if records else pd.DataFrame()
 
