@@ -2,7 +2,7 @@
 processing of one synthesized measurement stream.
 
 Randomness: one ``numpy.random.SeedSequence(seed)`` per run, spawned into child streams
-by fixed index (0 traffic/background, 1 GNSS, 2 UWB, 3 bearing, 4 V2V exchange), and the
+by fixed index (0 traffic/background, 1 GNSS, 2 UWB, 3 bearing, 4 V2V exchange, 5 faults), and the
 same seed handed to SUMO's ``--seed``. The same seed therefore gives bit-identical outputs,
 and changing one component's settings leaves the other components' draws unchanged.
 
@@ -39,8 +39,8 @@ from v2v.metrics.errors import lead_frame_errors, lead_frame_rotation
 from v2v.sensors.measurements import Bearings, GnssEpoch, UwbRanges
 from v2v.traffic.snapshot import TrafficStep
 
-STREAM_TRAFFIC, STREAM_GNSS, STREAM_UWB, STREAM_BEARING, STREAM_EXCHANGE = range(5)
-N_STREAMS = 5
+STREAM_TRAFFIC, STREAM_GNSS, STREAM_UWB, STREAM_BEARING, STREAM_EXCHANGE, STREAM_FAULTS = range(6)
+N_STREAMS = 6
 
 
 def child_seeds(seed: int) -> list[np.random.SeedSequence]:
@@ -131,7 +131,8 @@ def build_filter(sol: SolutionSection, lead: str, vehicles: Sequence[str], beari
     """The production EKF for one solution."""
     az = tuple(bearing_vehicles) if sol.azimuth == "estimated" else ()
     pairs = tuple(uwb_pairs) if sol.uwb_error_states else ()
-    layout = StateLayout.build(lead=lead, vehicles=tuple(vehicles), azimuth_vehicles=az, uwb_pairs=pairs)
+    layout = StateLayout.build(lead=lead, vehicles=tuple(vehicles), azimuth_vehicles=az, uwb_pairs=pairs,
+                               azimuth_rates=sol.yaw_rate_sigma_deg_s > 0.0)
     cfg = FilterConfig(
         process=ProcessNoiseConfig(
             vel_tau_s=sol.velocity_tau_s,
@@ -139,6 +140,9 @@ def build_filter(sol: SolutionSection, lead: str, vehicles: Sequence[str], beari
             vel_sigma_vertical_mps=sol.velocity_sigma_vertical_mps,
             drift_tau_s=sol.clock_drift_tau_s,
             drift_sigma_mps=sol.clock_drift_sigma_mps,
+            azimuth_rw_rad_per_sqrt_s=float(np.radians(sol.azimuth_rw_deg_per_sqrt_s)),
+            yaw_rate_sigma_rps=float(np.radians(sol.yaw_rate_sigma_deg_s)),
+            yaw_rate_tau_s=sol.yaw_rate_tau_s,
         ),
         noise=MeasurementNoiseConfig(
             pseudorange_sigma_m=sol.pseudorange_sigma_m,
@@ -181,7 +185,8 @@ def _subset_bearings(b: Bearings, idx: np.ndarray) -> Bearings:
 
 def exchange_stream(gnss_epochs: Sequence[tuple[float, dict[str, GnssEpoch]]], uwb: UwbRanges | None,
                     bearings: Bearings | None, exchange: V2VExchange, lead_base: Callable[[GnssEpoch], np.ndarray | None],
-                    output_times: Sequence[float]) -> tuple[list[Event], list[float]]:
+                    output_times: Sequence[float],
+                    dropped: Callable[[str, float], bool] | None = None) -> tuple[list[Event], list[float]]:
     """Send every measurement through the V2V exchange and return the delivered events
     (time-tag order, GNSS before UWB before bearings at equal tags) and the output epochs.
 
@@ -196,6 +201,8 @@ def exchange_stream(gnss_epochs: Sequence[tuple[float, dict[str, GnssEpoch]]], u
         msgs += [Message(float(uwb.t_s[k]), uwb.a[k], "uwb", k) for k in range(uwb.n)]
     if bearings is not None:
         msgs += [Message(float(bearings.t_s[k]), bearings.a[k], "bearing", k) for k in range(bearings.n)]
+    if dropped is not None:
+        msgs = [m for m in msgs if not dropped(m.sender, m.t_s)]
     msgs.sort(key=lambda m: (m.t_s, _KIND_RANK[m.kind]))
     delivered: list[Message] = []
     i = 0
@@ -245,18 +252,18 @@ class SolutionRecord:
 
 
 def _faulty(info: UpdateInfo, ev: Event) -> bool:
-    """Did the simulator corrupt this measurement beyond the filter's model (NLOS)?"""
+    """Did the simulator corrupt this measurement beyond the filter's model (NLOS or an injected fault)?"""
     if info.kind in (KIND_SD_PR, KIND_SD_PR_PAIR) and ev.gnss is not None:
         for v in info.vehicles:
             ep = ev.gnss.get(v)
             if ep is None:
                 continue
             hit = np.flatnonzero(ep.prn == info.prn)
-            if hit.size and not bool(ep.los[hit[0]]):
+            if hit.size and (not bool(ep.los[hit[0]]) or ep.errors_m.get("fault", np.zeros(ep.n))[hit[0]] != 0.0):
                 return True
         return False
     if info.kind == KIND_UWB and ev.uwb is not None:
-        return not bool(ev.uwb.los[0])
+        return not bool(ev.uwb.los[0]) or float(ev.uwb.errors_m.get("fault", np.zeros(1))[0]) != 0.0
     if info.kind == KIND_BEARING and ev.bearings is not None:
         return not bool(np.all(ev.bearings.los))
     return False

@@ -139,6 +139,7 @@ def run_scenario(
     from v2v.pipeline import (
         STREAM_BEARING,
         STREAM_EXCHANGE,
+        STREAM_FAULTS,
         STREAM_GNSS,
         STREAM_UWB,
         build_bearing,
@@ -221,6 +222,15 @@ def run_scenario(
         if "bearing" in used:
             bearings = build_bearing(scenario).simulate(steps, np.random.default_rng(seeds[STREAM_BEARING]), occlusion=occlusion)
         timing["bearing"] = time.perf_counter() - t0
+        fault_log = None
+        if scenario.faults:
+            from v2v.faults import FaultLog, apply_bearing_faults, apply_gnss_faults, apply_uwb_faults
+
+            fault_log = FaultLog()
+            frng = np.random.default_rng(seeds[STREAM_FAULTS])
+            gnss_epochs = apply_gnss_faults(gnss_epochs, list(scenario.faults), frng, fault_log)
+            uwb = apply_uwb_faults(uwb, list(scenario.faults), frng, fault_log)
+            bearings = apply_bearing_faults(bearings, list(scenario.faults), frng, fault_log)
         if save_measurements:
             t0 = time.perf_counter()
             from v2v.io.measurements import measurements_table
@@ -262,7 +272,16 @@ def run_scenario(
 
                 cl_epochs = [(t, {v: e for v, e in eps.items() if v in members}) for t, eps in gnss_epochs]
                 output_times = [t for t, eps in cl_epochs if lead in eps]
-                events, _ = exchange_stream(cl_epochs, uwb, bearings, exch, lead_base, output_times)
+                dropped = None
+                if scenario.faults:
+                    from v2v.faults import message_dropped
+
+                    faults = list(scenario.faults)
+
+                    def dropped(sender: str, t: float, _f=faults) -> bool:
+                        return message_dropped(_f, sender, t)
+
+                events, _ = exchange_stream(cl_epochs, uwb, bearings, exch, lead_base, output_times, dropped)
                 bearing_vehicles = members if scenario.sensors.bearing.measuring == "all" else [
                     v for v in scenario.sensors.bearing.measuring if v in members]
                 uwb_pairs = _uwb_pairs(scenario, members)
@@ -317,6 +336,7 @@ def run_scenario(
             "exchange": {"sent": exchange_stats.sent, "lost": exchange_stats.lost, "late": exchange_stats.late}
             if scenario.clusters else {},
             "event_counts": counts,
+            "faults_injected": fault_log.counts if fault_log is not None else {},
             "events": events_log[:1000],
             "truth_rows": truth.rows_written,
             "statistics": sol_stats,

@@ -23,6 +23,7 @@ from pydantic import BaseModel, ConfigDict, Field, ValidationError, field_valida
 
 from v2v.config.sections import ExchangeSection, SensorsSection, SolutionSection, paper_solutions
 from v2v.errors import UserError
+from v2v.faults import FaultSection
 
 DEFAULT_SCENARIO_PATH = Path(__file__).with_name("default.toml")
 
@@ -106,6 +107,7 @@ class Scenario(_Model):
     sensors: SensorsSection = SensorsSection()
     exchange: ExchangeSection = ExchangeSection()
     solutions: list[SolutionSection] = Field(default_factory=paper_solutions)
+    faults: list[FaultSection] = Field(default_factory=list)
 
     @field_validator("start_utc")
     @classmethod
@@ -141,6 +143,7 @@ class Scenario(_Model):
         named = list(self.sensors.uwb.vehicle_profiles)
         named += [v for pair in (self.sensors.uwb.pairs if self.sensors.uwb.pairs != "all" else []) for v in pair]
         named += list(self.sensors.bearing.measuring) if self.sensors.bearing.measuring != "all" else []
+        named += [v for f in self.faults if f.vehicles != "all" for v in f.vehicles]
         unknown = sorted(set(named) - ids)
         if unknown:
             raise ValueError(f"sensors name unknown vehicle(s) {unknown}; vehicles are {sorted(ids)}")

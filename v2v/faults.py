@@ -1,0 +1,236 @@
+"""Fault injection: the scenario's ``[[faults]]`` list, applied to the synthesized
+measurements before the V2V exchange (so every solution sees the same faults).
+
+Each fault has a ``kind``, a time window ``[start_s, start_s + duration_s)`` (duration 0 =
+to the end of the run for step faults such as a clock jump), and targets. Injected errors
+are recorded in the measurement's ``errors_m["fault"]`` component (NaN/Inf faults and
+dropped measurements are counted in the fault log), so metrics can tell true from false
+rejections.
+
+Kinds
+-----
+``gnss_outage``       all GNSS of ``vehicles`` (or all) missing in the window.
+``satellites_lost``   ``prns`` missing for ``vehicles`` in the window.
+``clock_jump``        receiver clock of each of ``vehicles`` jumps by ``size_m`` (default +1 ms =
+                      299 792.458 m) at ``start_s``: every later pseudorange and carrier phase.
+``cycle_slip``        carrier phase of ``prns`` (default all) jumps by ``size_cycles`` at ``start_s``
+                      (lock time reset).
+``pr_blunder``        each pseudorange in the window gets ``+size_m`` with ``probability``.
+``uwb_blunder``       each UWB range in the window gets ``+size_m`` with ``probability``.
+``uwb_replace``       the radio of ``vehicles[0]`` is replaced at ``start_s`` by a unit with another
+                      bias (``size_m``) and scale (``scale_ppm``): every later range involving it.
+``uwb_scale_drift``   ranges involving ``vehicles`` get an extra scale growing at ``scale_ppm`` per
+                      second from ``start_s`` (beyond the model).
+``bearing_outage``    bearings measured by ``vehicles`` missing in the window.
+``nonfinite``         measurements of ``sensor`` (gnss|uwb|bearing) of ``vehicles`` in the window become
+                      NaN (``size_m = inf`` for +Inf) with ``probability``.
+``message_loss``      every V2V message from ``vehicles`` lost in the window (a burst).
+``vehicle_leaves``    ``vehicles`` send nothing in the window (left the cluster, rejoin after).
+"""
+
+from __future__ import annotations
+
+from dataclasses import dataclass, field, replace
+from typing import Literal
+
+import numpy as np
+from pydantic import BaseModel, ConfigDict, Field, model_validator
+
+from v2v.sensors.measurements import GPS_L1_WAVELENGTH_M, SPEED_OF_LIGHT_MPS, Bearings, GnssEpoch, UwbRanges
+
+FaultKind = Literal[
+    "gnss_outage", "satellites_lost", "clock_jump", "cycle_slip", "pr_blunder", "uwb_blunder", "uwb_replace",
+    "uwb_scale_drift", "bearing_outage", "nonfinite", "message_loss", "vehicle_leaves",
+]
+
+
+class FaultSection(BaseModel):
+    """One ``[[faults]]`` entry."""
+
+    model_config = ConfigDict(extra="forbid", frozen=True)
+    kind: FaultKind
+    start_s: float = Field(ge=0.0)
+    duration_s: float = Field(default=0.0, ge=0.0)
+    vehicles: Literal["all"] | list[str] = "all"
+    prns: list[int] = Field(default_factory=list)
+    size_m: float = 0.0
+    size_cycles: int = 0
+    scale_ppm: float = 0.0
+    probability: float = Field(default=1.0, ge=0.0, le=1.0)
+    sensor: Literal["gnss", "uwb", "bearing"] = "gnss"
+
+    @model_validator(mode="after")
+    def _needs(self) -> FaultSection:
+        k = self.kind
+        if k == "satellites_lost" and not self.prns:
+            raise ValueError("satellites_lost needs prns = [...]")
+        if k in ("pr_blunder", "uwb_blunder") and self.size_m == 0.0:
+            raise ValueError(f"{k} needs size_m (the blunder, metres)")
+        if k == "cycle_slip" and self.size_cycles == 0:
+            raise ValueError("cycle_slip needs size_cycles (a non-zero integer)")
+        if k == "uwb_replace" and (self.vehicles == "all" or len(self.vehicles) != 1):
+            raise ValueError("uwb_replace needs vehicles = [one vehicle id]")
+        if k in ("gnss_outage", "satellites_lost", "pr_blunder", "uwb_blunder", "bearing_outage", "nonfinite",
+                 "message_loss", "vehicle_leaves") and self.duration_s <= 0.0:
+            raise ValueError(f"{k} needs duration_s > 0")
+        return self
+
+    def size_or_default_m(self) -> float:
+        if self.kind == "clock_jump" and self.size_m == 0.0:
+            return 1e-3 * SPEED_OF_LIGHT_MPS  # 1 ms
+        return self.size_m
+
+    def active(self, t_s: float) -> bool:
+        if self.duration_s <= 0.0:
+            return t_s >= self.start_s - 1e-9
+        return self.start_s - 1e-9 <= t_s < self.start_s + self.duration_s - 1e-9
+
+    def targets(self, vehicle: str) -> bool:
+        return self.vehicles == "all" or vehicle in self.vehicles
+
+
+@dataclass
+class FaultLog:
+    """What was injected: counts per fault (index in the scenario list) and kind."""
+
+    counts: dict[str, int] = field(default_factory=dict)
+
+    def add(self, i: int, kind: str, n: int = 1) -> None:
+        if n:
+            key = f"{i}:{kind}"
+            self.counts[key] = self.counts.get(key, 0) + int(n)
+
+
+def _with_fault(errors: dict[str, np.ndarray], n: int) -> dict[str, np.ndarray]:
+    out = dict(errors)
+    if "fault" not in out:
+        out["fault"] = np.zeros(n)
+    else:
+        out["fault"] = out["fault"].copy()
+    return out
+
+
+def apply_gnss_faults(epochs: list[tuple[float, dict[str, GnssEpoch]]], faults: list[FaultSection],
+                      rng: np.random.Generator, log: FaultLog) -> list[tuple[float, dict[str, GnssEpoch]]]:
+    gnss_faults = [(i, f) for i, f in enumerate(faults) if f.kind in (
+        "gnss_outage", "satellites_lost", "clock_jump", "cycle_slip", "pr_blunder") or (f.kind == "nonfinite" and f.sensor == "gnss")]
+    if not gnss_faults:
+        return epochs
+    out = []
+    slipped: set[tuple[int, str]] = set()
+    for t, eps in epochs:
+        new: dict[str, GnssEpoch] = {}
+        for v, ep in eps.items():
+            keep = True
+            for i, f in gnss_faults:
+                if not (f.targets(v) and f.active(t)):
+                    continue
+                if f.kind == "gnss_outage":
+                    keep = False
+                    log.add(i, f.kind)
+                    break
+                if f.kind == "satellites_lost":
+                    m = ~np.isin(ep.prn, f.prns)
+                    log.add(i, f.kind, int((~m).sum()))
+                    ep = _take(ep, m)
+                elif f.kind == "clock_jump":
+                    d = f.size_or_default_m()
+                    err = _with_fault(ep.errors_m, ep.n)
+                    err["fault"] += d
+                    ep = replace(ep, pseudorange_m=ep.pseudorange_m + d,
+                                 carrier_cycles=ep.carrier_cycles + d / GPS_L1_WAVELENGTH_M, errors_m=err)
+                    log.add(i, f.kind, ep.n)
+                elif f.kind == "cycle_slip":
+                    # A slip is a step: from start_s on, the phase carries the extra cycles; the
+                    # receiver's lock time restarts at the first epoch after the slip.
+                    hit = np.ones(ep.n, bool) if not f.prns else np.isin(ep.prn, f.prns)
+                    first = (i, v) not in slipped
+                    slipped.add((i, v))
+                    ep = replace(ep, carrier_cycles=ep.carrier_cycles + f.size_cycles * hit,
+                                 ambiguity_cycles=ep.ambiguity_cycles + f.size_cycles * hit,
+                                 lock_time_s=np.where(hit & first, 0.0, ep.lock_time_s))
+                    log.add(i, f.kind, int(hit.sum()) if first else 0)
+                elif f.kind == "pr_blunder":
+                    hit = rng.random(ep.n) < f.probability
+                    err = _with_fault(ep.errors_m, ep.n)
+                    err["fault"] += f.size_m * hit
+                    ep = replace(ep, pseudorange_m=ep.pseudorange_m + f.size_m * hit, errors_m=err)
+                    log.add(i, f.kind, int(hit.sum()))
+                elif f.kind == "nonfinite":
+                    hit = rng.random(ep.n) < f.probability
+                    bad = np.inf if np.isinf(f.size_m) else np.nan
+                    ep = replace(ep, pseudorange_m=np.where(hit, bad, ep.pseudorange_m),
+                                 doppler_mps=np.where(hit, bad, ep.doppler_mps))
+                    log.add(i, f.kind, int(hit.sum()))
+            if keep:
+                new[v] = ep
+        out.append((t, new))
+    return out
+
+
+def _take(ep: GnssEpoch, m: np.ndarray) -> GnssEpoch:
+    arrays = {k: getattr(ep, k)[m] for k in (
+        "prn", "pseudorange_m", "doppler_mps", "carrier_cycles", "lock_time_s", "cn0_dbhz", "sv_pos_ecef_m",
+        "sv_vel_ecef_mps", "sv_clock_m", "elevation_rad", "azimuth_rad", "los", "true_range_m", "ambiguity_cycles")}
+    return replace(ep, **arrays, errors_m={k: v[m] for k, v in ep.errors_m.items()})
+
+
+def apply_uwb_faults(uwb: UwbRanges | None, faults: list[FaultSection], rng: np.random.Generator,
+                     log: FaultLog) -> UwbRanges | None:
+    fs = [(i, f) for i, f in enumerate(faults) if f.kind in ("uwb_blunder", "uwb_replace", "uwb_scale_drift")
+          or (f.kind == "nonfinite" and f.sensor == "uwb")]
+    if uwb is None or not fs or uwb.n == 0:
+        return uwb
+    r = uwb.range_m.copy()
+    err = _with_fault(uwb.errors_m, uwb.n)
+    t = uwb.t_s
+    involves = lambda f: np.array([f.targets(a) or f.targets(b) for a, b in zip(uwb.a, uwb.b, strict=True)])  # noqa: E731
+    for i, f in fs:
+        act = np.array([f.active(x) for x in t]) & involves(f)
+        if f.kind == "uwb_blunder":
+            hit = act & (rng.random(uwb.n) < f.probability)
+            r += f.size_m * hit
+            err["fault"] += f.size_m * hit
+            log.add(i, f.kind, int(hit.sum()))
+        elif f.kind == "uwb_replace":
+            d = (f.size_m + f.scale_ppm * 1e-6 * uwb.true_range_m) * act
+            r += d
+            err["fault"] += d
+            log.add(i, f.kind, int(act.sum()))
+        elif f.kind == "uwb_scale_drift":
+            d = f.scale_ppm * 1e-6 * np.clip(t - f.start_s, 0.0, None) * uwb.true_range_m * act
+            r += d
+            err["fault"] += d
+            log.add(i, f.kind, int(act.sum()))
+        elif f.kind == "nonfinite":
+            hit = act & (rng.random(uwb.n) < f.probability)
+            r = np.where(hit, np.inf if np.isinf(f.size_m) else np.nan, r)
+            log.add(i, f.kind, int(hit.sum()))
+    return replace(uwb, range_m=r, errors_m=err)
+
+
+def apply_bearing_faults(b: Bearings | None, faults: list[FaultSection], rng: np.random.Generator,
+                         log: FaultLog) -> Bearings | None:
+    fs = [(i, f) for i, f in enumerate(faults) if f.kind == "bearing_outage" or (f.kind == "nonfinite" and f.sensor == "bearing")]
+    if b is None or not fs or b.n == 0:
+        return b
+    keep = np.ones(b.n, bool)
+    val = b.bearing_rad.copy()
+    for i, f in fs:
+        act = np.array([f.active(x) and f.targets(a) for x, a in zip(b.t_s, b.a, strict=True)])
+        if f.kind == "bearing_outage":
+            keep &= ~act
+            log.add(i, f.kind, int(act.sum()))
+        else:
+            hit = act & (rng.random(b.n) < f.probability)
+            val = np.where(hit, np.inf if np.isinf(f.size_m) else np.nan, val)
+            log.add(i, f.kind, int(hit.sum()))
+    idx = np.flatnonzero(keep)
+    return Bearings(t_s=b.t_s[idx], a=tuple(b.a[k] for k in idx), b=tuple(b.b[k] for k in idx), bearing_rad=val[idx],
+                    true_bearing_rad=b.true_bearing_rad[idx], azimuth_reported_rad=b.azimuth_reported_rad[idx],
+                    true_azimuth_rad=b.true_azimuth_rad[idx], los=b.los[idx])
+
+
+def message_dropped(faults: list[FaultSection], sender: str, t_s: float) -> bool:
+    """True when a message-loss burst or a vehicle-leaves fault silences ``sender`` at ``t_s``."""
+    return any(f.kind in ("message_loss", "vehicle_leaves") and f.targets(sender) and f.active(t_s) for f in faults)
