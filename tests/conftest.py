@@ -10,6 +10,8 @@ from pathlib import Path
 
 import pytest
 
+import v2v  # noqa: F401  (sets single-threaded BLAS before numpy loads)
+
 REPO = Path(__file__).resolve().parents[1]
 SHARED_DATA = REPO.parent / "shared" / "data"
 
