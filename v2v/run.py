@@ -395,8 +395,8 @@ def _log_truth_and_links(logger, steps, uwb, bearings, gnss_epochs) -> None:
         for kind, tt, meas in (("uwb", uwb_t, uwb), ("bearing", br_t, bearings)):
             if meas is None:
                 continue
-            idx = np.flatnonzero((tt > prev) & (tt <= st.t_s + 1e-9))
-            idx = [k for k in idx if meas.a[k] in st.vehicles and meas.b[k] in st.vehicles]
+            window = np.flatnonzero((tt > prev) & (tt <= st.t_s + 1e-9))
+            idx = [int(k) for k in window if meas.a[k] in st.vehicles and meas.b[k] in st.vehicles]
             if idx:
                 a = np.array([st.vehicles[meas.a[k]].xyz_m for k in idx])
                 b = np.array([st.vehicles[meas.b[k]].xyz_m for k in idx])
