@@ -67,6 +67,10 @@ def build_parser() -> argparse.ArgumentParser:
     sc.add_argument("file", type=Path)
     sc.add_argument("--set", dest="overrides", action="append", default=[], metavar="KEY=VALUE")
 
+    from v2v.sweep import add_sweep_parser
+
+    add_sweep_parser(sub)
+
     k = sub.add_parser("sky", help="satellites in view at a place and time (or a scenario's start)")
     k.add_argument("--lat", type=float, help="latitude, degrees")
     k.add_argument("--lon", type=float, help="longitude, degrees")
@@ -235,6 +239,10 @@ def main(argv: list[str] | None = None) -> int:
             return _cmd_scenario(args)
         if args.cmd == "replay":
             return _cmd_replay(args)
+        if args.cmd == "sweep":
+            from v2v.sweep import cmd_sweep
+
+            return cmd_sweep(args)
         if args.cmd == "sky":
             return _cmd_sky(args)
     except UserError as exc:

@@ -1,0 +1,330 @@
+"""`v2v sweep`: Monte Carlo studies on Dask.
+
+What must hold: a study file is validated whole before any run starts; each run happens in a
+worker process and lands in its own run folder; runs.parquet has one row per run whose
+numbers are the run's summary.json; a rerun executes only the missing runs; a run SUMO rejects
+is a row with a one-line error while the others succeed; an external scheduler gives the
+same numbers as the built-in local cluster (same seeds -> bit-identical runs); the report's
+intervals are Student-t intervals of the mean across seeds.
+"""
+
+from __future__ import annotations
+
+import argparse
+import json
+import math
+import shutil
+import subprocess
+import sys
+import time
+import tomllib
+from datetime import UTC, datetime
+from pathlib import Path
+
+import numpy as np
+import pandas as pd
+import pytest
+
+from v2v.errors import UserError
+from v2v.sweep import (
+    META_COLUMNS,
+    RunTask,
+    add_sweep_parser,
+    cmd_sweep,
+    execute_run,
+    flatten_summary,
+    load_study,
+    run_study,
+    t_interval_half_width,
+    toml_inline,
+)
+
+REPO = Path(__file__).resolve().parents[1]
+EXAMPLE = REPO / "scenarios" / "sweeps" / "example_sweep.toml"
+
+TINY = """\
+seeds = [1, 2]
+[set]
+duration_s = 5.0
+solutions = [{name = "GPS", sensors = ["gnss"]}]
+[grid]
+"network.name" = ["hospital_loop", "residential"]
+"""
+
+
+def _cli(argv: list[str]) -> int:
+    """`v2v sweep ...` through the real CLI once it is wired, else through the same parser."""
+    from v2v import cli
+
+    parser = cli.build_parser()
+    sub = next(a for a in parser._actions if isinstance(a, argparse._SubParsersAction))
+    if "sweep" in sub.choices:
+        return cli.main(argv)
+    add_sweep_parser(sub)
+    args = parser.parse_args(argv)
+    try:
+        return cmd_sweep(args)
+    except UserError as exc:
+        print(f"v2v: error: {exc.one_line()}", file=sys.stderr)
+        return 2
+
+
+def _metric_columns(df: pd.DataFrame) -> list[str]:
+    return [c for c in df.columns if c not in META_COLUMNS]
+
+
+# --------------------------------------------------------------------------- the study file (no runs)
+
+
+@pytest.mark.parametrize("value", [
+    3, -2.5, 1e-7, float("inf"), True, "urban \"canyon\"\n", [0, 1], [],
+    [{"name": "GPS+UWB", "sensors": ["gnss", "uwb"], "uwb_sigma_m": 0.25}],
+    {"profile": "tdc", "pairs": "all"}, datetime(2021, 4, 28, 19, tzinfo=UTC),
+])
+def test_grid_values_round_trip_through_set_syntax(value):
+    # grid values reach load_scenario as `--set key=<inline TOML>`: the text must parse back to the value
+    assert tomllib.loads(f"v = {toml_inline(value)}")["v"] == value
+
+
+@pytest.mark.parametrize("text, field", [
+    ('[grid]\n"network.nme" = ["residential"]\n', "network.nme"),  # typo in a grid path
+    ('[grid]\n"clusters.0.vehicles" = [3, 1]\n', "clusters.0.vehicles"),  # second value invalid (>= 2)
+    ('[set]\n"duration_s" = -1.0\n', "duration_s"),
+    ('[grid]\n"network.name" = "residential"\n', "grid.network.name"),  # not a list
+    ('seed = [1, 2]\n', "seed"),  # unknown study key
+    ('seeds = {start = 1, count = 0}\n', "seeds"),
+    ('seeds = [1, 1]\n', "seeds"),
+    ('base = "nowhere.toml"\n', "base"),
+    ('[grid]\n"seed" = [1, 2]\n', "grid.seed"),
+])
+def test_bad_study_fails_up_front_naming_the_field(tmp_path, text, field):
+    study = tmp_path / "study.toml"
+    study.write_text(text)
+    with pytest.raises(UserError) as err:
+        run_study(study, tmp_path / "out")
+    assert field in err.value.one_line() and "\n" not in err.value.one_line()
+    assert not (tmp_path / "out").exists(), "nothing may start (or be written) before the whole study validates"
+
+
+def test_nested_grid_tables_equal_dotted_keys_and_ids_are_stable(tmp_path):
+    a, b = tmp_path / "a.toml", tmp_path / "b.toml"
+    a.write_text('seeds = [4, 5]\n[grid]\n"clusters.0.vehicles" = [2, 4]\n')
+    b.write_text('seeds = [4, 5]\n[grid.clusters]\n"0" = {vehicles = [2, 4]}\n')  # the same, as nested tables
+    sa, sb = load_study(a), load_study(b)
+    assert [r.run_id for r in sa.runs] == [r.run_id for r in sb.runs] == [r.run_id for r in load_study(a).runs]
+    assert [(r.labels["clusters.0.vehicles"], r.seed, r.scenario.clusters[0].vehicles) for r in sa.runs] == [
+        (2, 4, 2), (2, 5, 2), (4, 4, 4), (4, 5, 4)]
+    assert all(r.scenario.seed == r.seed for r in sa.runs)
+    a.write_text('seeds = [4, 5]\n[set]\nduration_s = 9.0\n[grid]\n"clusters.0.vehicles" = [2, 4]\n')
+    assert not {r.run_id for r in load_study(a).runs} & {r.run_id for r in sa.runs}, "an edited study never reuses runs"
+
+
+def test_example_study_is_2_networks_x_2_solutions_x_5_seeds_of_30_s():
+    st = load_study(EXAMPLE)
+    assert len(st.runs) == 20 and len({r.run_id for r in st.runs}) == 20
+    combos = {(r.scenario.network.name, tuple(s.name for s in r.scenario.solutions)) for r in st.runs}
+    assert combos == {(n, (s,)) for n in ("hospital_loop", "residential") for s in ("GPS", "GPS+UWB+Bearing")}
+    assert {r.seed for r in st.runs} == {1, 2, 3, 4, 5}
+    assert all(r.scenario.duration_s == 30.0 for r in st.runs)
+    assert not st.replay
+
+
+def test_t_interval_matches_student_t_tables():
+    # t_{0.975, 1} = 12.7062, t_{0.975, 4} = 2.7764 (any statistics table)
+    n, mean, std, half = t_interval_half_width([1.0, 2.0])
+    assert (n, mean) == (2, 1.5) and std == pytest.approx(math.sqrt(0.5))
+    assert half == pytest.approx(12.7062 * math.sqrt(0.5) / math.sqrt(2), rel=1e-4)
+    x = [0.1, 0.2, 0.15, 0.3, 0.25]
+    assert t_interval_half_width(x)[3] == pytest.approx(2.7764 * np.std(x, ddof=1) / math.sqrt(5), rel=1e-4)
+    assert math.isnan(t_interval_half_width([3.0, float("nan")])[3])  # one finite value: no interval
+
+
+def test_flatten_summary_names_columns_solution_vehicle_metric():
+    s = {"seed": 3, "wall_s": 1.0, "simulated_s": 5.0, "gnss": {"epochs": 51, "nlos_fraction": None},
+         "events": [{"t_s": 1.0}], "table": "x",
+         "statistics": {"GPS": {"vehicles": {"c1.1": {"availability": 1.0, "along": {"std": 0.1}}},
+                                "measurements": {"sd_pseudorange": {"used": 600}}}}}
+    flat = flatten_summary(s)
+    assert math.isnan(flat.pop("gnss.nlos_fraction"))  # JSON null (json_safe wrote NaN as null)
+    assert flat == {"simulated_s": 5.0, "gnss.epochs": 51.0, "GPS.c1.1.availability": 1.0,
+                    "GPS.c1.1.along.std": 0.1, "GPS.measurements.sd_pseudorange.used": 600.0}
+
+
+# --------------------------------------------------------------------------- one run in a process
+
+
+@pytest.mark.sumo
+def test_failed_run_is_a_plain_dict_and_the_process_can_run_again(tmp_path):
+    """libsumo's errors don't pickle and it allows one simulation per process: a task that SUMO
+    rejects returns a one-line error, and the next task in the same process runs fine."""
+    bad_sc = load_study(_write(tmp_path / "bad.toml", 'seeds = [1]\n[set]\nduration_s = 2.0\nsolutions = []\n'
+                                "\"network.route_edges\" = ['ap_in', 'SW-SE']\n")).runs[0].scenario
+    good_sc = load_study(_write(tmp_path / "good.toml", "seeds = [1]\n[set]\nduration_s = 2.0\nsolutions = []\n")).runs[0].scenario
+    bad = execute_run(RunTask(run_id="bad", scenario=bad_sc, out_dir=str(tmp_path / "bad"), replay=False,
+                              save_measurements=False, base_dir=None))
+    assert bad["status"] == "failed" and "network.route_edges" in bad["error"] and "\n" not in bad["error"]
+    assert not (tmp_path / "bad").exists()
+    good = execute_run(RunTask(run_id="good", scenario=good_sc, out_dir=str(tmp_path / "good"), replay=False,
+                               save_measurements=False, base_dir=None))
+    assert good["status"] == "ok", good["error"]
+    assert good["metrics"]["simulated_s"] == pytest.approx(2.0)
+
+
+def _write(path: Path, text: str) -> Path:
+    path.write_text(text)
+    return path
+
+
+# --------------------------------------------------------------------------- whole sweeps on Dask
+
+
+@pytest.fixture(scope="module")
+def tiny_study(tmp_path_factory) -> Path:
+    return _write(tmp_path_factory.mktemp("study") / "tiny.toml", TINY)
+
+
+@pytest.fixture(scope="module")
+def local_sweep(tiny_study, tmp_path_factory) -> Path:
+    """The tiny study through the CLI on v2v's own LocalCluster (2 single-threaded worker processes)."""
+    out = tmp_path_factory.mktemp("sweep") / "local"
+    assert _cli(["sweep", str(tiny_study), "--out", str(out), "--workers", "2", "--quiet"]) == 0
+    return out
+
+
+@pytest.fixture(scope="module")
+def external_scheduler():
+    """A scheduler + 2 worker processes on loopback, started outside v2v (as a user's cluster would be)."""
+    from dask.distributed import LocalCluster
+
+    cluster = LocalCluster(n_workers=2, threads_per_worker=1, processes=True, host="127.0.0.1", dashboard_address=None)
+    yield cluster.scheduler_address
+    cluster.close()
+
+
+@pytest.mark.sumo
+def test_runs_parquet_rows_are_the_runs_summaries(local_sweep):
+    df = pd.read_parquet(local_sweep / "runs.parquet")
+    assert len(df) == 4 and (df["status"] == "ok").all() and (df["error"] == "").all()
+    assert list(df.columns[:6]) == ["run_id", "network.name", "seed", "status", "error", "wall_s"]
+    assert sorted(zip(df["network.name"], df["seed"], strict=True)) == [
+        ("hospital_loop", 1), ("hospital_loop", 2), ("residential", 1), ("residential", 2)]
+    for row in df.to_dict("records"):
+        s = json.loads((local_sweep / "runs" / row["run_id"] / "summary.json").read_text())
+        assert s["seed"] == row["seed"] and s["network"].startswith(row["network.name"])
+        assert row["wall_s"] == s["wall_s"] and row["simulated_s"] == s["simulated_s"] == pytest.approx(5.0, abs=0.11)
+        for veh in ("c1.1", "c1.2"):
+            st = s["statistics"]["GPS"]["vehicles"][veh]
+            assert row[f"GPS.{veh}.along.std"] == st["along"]["std"]
+            assert row[f"GPS.{veh}.across.std"] == st["across"]["std"]
+            assert row[f"GPS.{veh}.availability"] == st["availability"]
+        assert row["gnss.epochs"] == s["gnss"]["epochs"]
+    # the seeds differ, so the runs differ (no accidental seed reuse across workers)
+    assert df["GPS.c1.1.along.std"].nunique() == 4
+    assert json.loads((local_sweep / "sweep.json").read_text())["grid_columns"] == ["network.name"]
+
+
+@pytest.mark.sumo
+def test_external_scheduler_gives_identical_results(tiny_study, local_sweep, external_scheduler, tmp_path):
+    res = run_study(tiny_study, tmp_path / "ext", scheduler=external_scheduler)
+    assert (res.executed, res.skipped, res.failed) == (4, 0, 0)
+    a = pd.read_parquet(local_sweep / "runs.parquet")
+    b = pd.read_parquet(tmp_path / "ext" / "runs.parquet")
+    assert list(a.columns) == list(b.columns)
+    cols = [c for c in a.columns if c != "wall_s"]
+    pd.testing.assert_frame_equal(a[cols], b[cols])  # same seeds -> bit-identical runs, wherever they ran
+
+
+@pytest.mark.sumo
+def test_rerun_executes_only_missing_runs(tiny_study, local_sweep, external_scheduler, tmp_path):
+    out = tmp_path / "resumed"
+    shutil.copytree(local_sweep, out)
+    before = pd.read_parquet(out / "runs.parquet")
+    victim = before["run_id"][2]
+    shutil.rmtree(out / "runs" / victim)  # as if killed before this run finished ...
+    (out / "runs" / f".{victim}.abc.partial").mkdir()  # ... with its staging folder left behind
+    mtimes = {r: (out / "runs" / r / "summary.json").stat().st_mtime_ns for r in before["run_id"] if r != victim}
+    res = run_study(tiny_study, out, scheduler=external_scheduler)
+    assert (res.executed, res.skipped, res.failed) == (1, 3, 0)
+    assert {r: (out / "runs" / r / "summary.json").stat().st_mtime_ns for r in mtimes} == mtimes, "others untouched"
+    assert not list((out / "runs").glob(".*")), "the dead run's staging folder is cleaned up"
+    after = pd.read_parquet(out / "runs.parquet")
+    cols = [c for c in before.columns if c != "wall_s"]
+    pd.testing.assert_frame_equal(before[cols], after[cols])  # the re-run run reproduces its numbers
+    again = run_study(tiny_study, out, scheduler=external_scheduler)
+    assert (again.executed, again.skipped) == (0, 4)
+
+
+@pytest.mark.sumo
+def test_a_run_sumo_rejects_is_recorded_and_the_others_succeed(external_scheduler, tmp_path):
+    study = _write(tmp_path / "fail.toml", 'seeds = [1, 2]\n[set]\nduration_s = 3.0\nsolutions = []\n'
+                   "[grid]\n\"network.route_edges\" = [[], ['ap_in', 'SW-SE']]\n")
+    res = run_study(study, tmp_path / "out", scheduler=external_scheduler)
+    assert (res.executed, res.failed) == (4, 2)
+    df = pd.read_parquet(tmp_path / "out" / "runs.parquet")
+    ok, bad = df[df["status"] == "ok"], df[df["status"] == "failed"]
+    assert len(ok) == 2 and (ok["network.route_edges"] == "[]").all()
+    assert len(bad) == 2 and (bad["network.route_edges"] == '["ap_in","SW-SE"]').all()
+    for err in bad["error"]:
+        assert "network.route_edges" in err and "fix:" in err and "\n" not in err
+    assert bad["simulated_s"].isna().all() and np.allclose(ok["simulated_s"], 3.0, atol=0.11)
+    assert all((tmp_path / "out" / "runs" / r / "summary.json").is_file() for r in ok["run_id"])
+    assert not any((tmp_path / "out" / "runs" / r).exists() for r in bad["run_id"])
+    # failed runs are retried by the next invocation; finished ones are not
+    again = run_study(study, tmp_path / "out", scheduler=external_scheduler)
+    assert (again.executed, again.skipped, again.failed) == (2, 2, 2)
+
+
+@pytest.mark.sumo
+def test_report_means_and_t_intervals_across_seeds(local_sweep, tmp_path):
+    assert _cli(["sweep", "report", str(local_sweep), "--out", str(tmp_path)]) == 0
+    runs = pd.read_parquet(local_sweep / "runs.parquet")
+    rep = pd.read_csv(tmp_path / "report.csv")
+    for net, g in runs.groupby("network.name"):
+        for metric in ("GPS.c1.1.along.std", "GPS.c1.2.across.std", "simulated_s"):
+            x = g[metric].to_numpy()
+            r = rep[(rep["network.name"] == net) & (rep["metric"] == metric)].iloc[0]
+            assert r["n"] == 2 and r["mean"] == pytest.approx(x.mean())
+            # two seeds: half-width = t_{0.975,1} * |x1 - x2| / 2 (t = 12.706)
+            assert r["ci95_half"] == pytest.approx(12.7062 * abs(x[0] - x[1]) / 2, rel=1e-4)
+            assert r["ci95_low"] <= x.min() + 1e-12 and r["ci95_high"] >= x.max() - 1e-12
+        # the per-run vehicle mean is the mean of the vehicles' stds
+        vm = rep[(rep["network.name"] == net) & (rep["metric"] == "GPS.vehicles_mean.along.std")].iloc[0]
+        assert vm["mean"] == pytest.approx(g[["GPS.c1.1.along.std", "GPS.c1.2.along.std"]].to_numpy().mean())
+    md = (tmp_path / "report.md").read_text()
+    assert "| hospital_loop | GPS | c1.1 |" in md and "| residential | 2 | 0 |" in md
+    png = (tmp_path / "report.png").read_bytes()
+    assert png[:8] == b"\x89PNG\r\n\x1a\n" and len(png) > 10_000
+
+
+# --------------------------------------------------------------------------- slow: real dask CLIs
+
+
+@pytest.mark.slow
+@pytest.mark.sumo
+def test_dask_cli_scheduler_and_worker(tiny_study, local_sweep, tmp_path):
+    """`dask scheduler` + `dask worker --nthreads 1` as separate programs, as on a real cluster."""
+    dask_exe = str(Path(sys.executable).with_name("dask"))
+    port_file = tmp_path / "scheduler.json"
+    sched = subprocess.Popen([dask_exe, "scheduler", "--host", "127.0.0.1", "--port", "0", "--no-dashboard",
+                              "--scheduler-file", str(port_file)], stdout=subprocess.DEVNULL, stderr=subprocess.DEVNULL)
+    worker = None
+    try:
+        for _ in range(300):
+            if port_file.is_file() and port_file.stat().st_size:
+                break
+            time.sleep(0.1)
+        address = json.loads(port_file.read_text())["address"]
+        worker = subprocess.Popen([dask_exe, "worker", address, "--nthreads", "1", "--nworkers", "2",
+                                   "--no-dashboard", "--host", "127.0.0.1"],
+                                  stdout=subprocess.DEVNULL, stderr=subprocess.DEVNULL)
+        res = run_study(tiny_study, tmp_path / "cli", scheduler=address)
+        assert (res.executed, res.failed) == (4, 0)
+        a = pd.read_parquet(local_sweep / "runs.parquet")
+        b = pd.read_parquet(tmp_path / "cli" / "runs.parquet")
+        cols = [c for c in a.columns if c != "wall_s"]
+        pd.testing.assert_frame_equal(a[cols], b[cols])
+    finally:
+        for p in (worker, sched):
+            if p is not None:
+                p.terminate()
+                p.wait(timeout=30)

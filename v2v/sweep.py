@@ -1,0 +1,835 @@
+"""Monte Carlo studies: a grid of scenario variants x seeds, run in parallel on Dask.
+
+A *study file* is TOML, data only::
+
+    base = "../hospital_loop.toml"      # relative to the study file; omit for the built-in default
+    seeds = {start = 1, count = 100}    # or seeds = [1, 2, 3]
+    replay = false                      # write replay.rrd in every run folder (default false)
+    save_measurements = false           # write measurements.parquet too (default false)
+
+    [set]                               # fixed overrides for every run (same paths as --set)
+    duration_s = 30.0
+
+    [grid]                              # every combination of these values is run for every seed
+    "network.name" = ["hospital_loop", "residential"]
+    solutions = [[{name = "GPS", sensors = ["gnss"]}], []]
+
+Keys in ``[grid]`` and ``[set]`` are the dotted ``--set`` paths of
+:func:`v2v.config.scenario.apply_override` (quoted, or written as nested TOML tables);
+values replace, as ``--set`` does. Every combination is validated with
+:func:`~v2v.config.scenario.load_scenario` before any run starts.
+
+Execution: each run is one :func:`v2v.run.run_scenario` call in a Dask worker *process*
+(libsumo allows one simulation per process and is not thread-safe; a process-wide lock
+serializes runs even on a worker started with several threads). The default is a
+``LocalCluster`` on 127.0.0.1 with one single-threaded worker process per core;
+``--scheduler tcp://HOST:PORT`` sends the same tasks to an existing cluster, whose
+workers must see the output folder (a shared file system) and have the same v2v.
+
+Output folder::
+
+    DIR/sweep.json          the study (grid columns, seeds, source) for ``v2v sweep report``
+    DIR/runs/<run_id>/      each run's folder (written atomically by run_scenario)
+    DIR/runs.parquet        one row per run: run_id, grid columns, seed, status, error,
+                            wall_s, then the run's summary.json flattened to numbers
+
+``run_id`` is ``<readable grid values>-s<seed>-<hash>``, the hash taken over the run's inputs
+(the base file's bytes, ``[set]``, its grid values, its seed): editing the study gives new ids
+and never reuses a stale run, while a v2v update does not invalidate finished runs (use a new
+``--out`` to redo them). Rerunning a study skips runs whose folder holds a readable
+``summary.json``; ``runs.parquet`` is rewritten atomically as runs complete (Ctrl-C leaves it
+consistent: finished runs are in it, unfinished ones are not).
+"""
+
+from __future__ import annotations
+
+import argparse
+import dataclasses
+import datetime as _dt
+import hashlib
+import itertools
+import json
+import math
+import os
+import re
+import shutil
+import signal
+import sys
+import threading
+import time
+from dataclasses import dataclass, field
+from pathlib import Path
+from typing import Any
+
+from v2v.errors import UserError
+
+STUDY_KEYS = ("base", "seeds", "replay", "save_measurements", "set", "grid")
+META_COLUMNS = ("run_id", "seed", "status", "error", "wall_s")
+RUNS_FILE = "runs.parquet"
+SWEEP_FILE = "sweep.json"
+MAX_SEED = 2**31 - 1
+# summary.json entries that are not per-run results (or not numbers worth a column)
+_SUMMARY_SKIP = frozenset({
+    "v2v_version", "scenario", "seed", "network", "wall_s", "real_time_factor", "timing_s", "vehicles",
+    "leads", "solutions", "events", "table", "note", "statistics",
+})
+
+
+# --------------------------------------------------------------------------- the study
+
+
+@dataclass(frozen=True, kw_only=True)
+class RunSpec:
+    """One run of a study: a grid combination and a seed."""
+
+    run_id: str
+    labels: dict[str, Any]  # grid column -> value as written to runs.parquet
+    seed: int
+    scenario: Any  # v2v.config.scenario.Scenario (validated)
+
+
+@dataclass(frozen=True, kw_only=True)
+class Study:
+    source: Path
+    base: Path | None
+    fixed: dict[str, Any]
+    grid: dict[str, list[Any]]
+    seeds: tuple[int, ...]
+    replay: bool = False
+    save_measurements: bool = False
+    runs: tuple[RunSpec, ...] = field(default=())
+
+    @property
+    def grid_columns(self) -> list[str]:
+        return list(self.grid)
+
+    @property
+    def base_dir(self) -> Path | None:
+        return self.base.parent if self.base is not None else None
+
+
+def toml_inline(value: Any) -> str:
+    """A Python value read from TOML, written back as an inline TOML value (for ``--set``)."""
+    if isinstance(value, bool):
+        return "true" if value else "false"
+    if isinstance(value, int):
+        return str(value)
+    if isinstance(value, float):
+        if math.isnan(value):
+            return "nan"
+        if math.isinf(value):
+            return "inf" if value > 0 else "-inf"
+        return repr(value)
+    if isinstance(value, str):
+        return json.dumps(value)
+    if isinstance(value, _dt.datetime | _dt.date | _dt.time):
+        return value.isoformat()
+    if isinstance(value, list | tuple):
+        return "[" + ", ".join(toml_inline(v) for v in value) + "]"
+    if isinstance(value, dict):
+        return "{" + ", ".join(f"{json.dumps(str(k))} = {toml_inline(v)}" for k, v in value.items()) + "}"
+    raise TypeError(f"cannot write {type(value).__name__} as TOML")
+
+
+def _flatten_table(table: dict[str, Any], prefix: str, where: str, *, leaf_lists: bool) -> dict[str, Any]:
+    """Nested TOML tables -> dotted paths. With ``leaf_lists`` every leaf must be a list (a grid)."""
+    out: dict[str, Any] = {}
+    for k, v in table.items():
+        path = f"{prefix}.{k}" if prefix else str(k)
+        if isinstance(v, dict):
+            out.update(_flatten_table(v, path, where, leaf_lists=leaf_lists))
+        elif leaf_lists and not isinstance(v, list):
+            raise UserError(f"grid values must be a list of values (got {v!r})", field=f"{where}.{path}",
+                            fix=f'write e.g. "{path}" = [{toml_inline(v)}, ...], or move it to [set]')
+        else:
+            out[path] = v
+    return out
+
+
+def _label(value: Any) -> Any:
+    if isinstance(value, bool | int | float | str):
+        return value
+    if isinstance(value, list) and value and all(isinstance(v, dict) and "name" in v for v in value):
+        return ", ".join(str(v["name"]) for v in value)  # e.g. a solutions list -> its names
+    return json.dumps(value, separators=(",", ":"), default=str)
+
+
+def _column_labels(values: list[Any]) -> list[Any]:
+    """Labels for one grid column, with one parquet type per column."""
+    labels = [_label(v) for v in values]
+    if all(isinstance(x, bool) for x in labels):
+        return labels
+    if all(isinstance(x, int | float) and not isinstance(x, bool) for x in labels):
+        return labels
+    return [str(x) for x in labels]
+
+
+def _slug(value: Any) -> str:
+    s = re.sub(r"[^A-Za-z0-9.+-]+", "-", str(value)).strip("-.")
+    return s[:24] or "x"
+
+
+def _read_seeds(raw: Any, where: str) -> tuple[int, ...]:
+    if isinstance(raw, list):
+        seeds = raw
+    elif isinstance(raw, dict):
+        extra = set(raw) - {"start", "count"}
+        if extra or "count" not in raw:
+            raise UserError(f"seeds table needs 'count' (and optionally 'start'), got keys {sorted(raw)}",
+                            field="seeds", fix="write seeds = {start = 1, count = 100} or seeds = [1, 2, 3]")
+        start, count = raw.get("start", 1), raw["count"]
+        if not (isinstance(start, int) and isinstance(count, int)) or count < 1:
+            raise UserError("seeds.start and seeds.count must be integers, count >= 1", field="seeds",
+                            fix="write seeds = {start = 1, count = 100}")
+        seeds = list(range(start, start + count))
+    else:
+        raise UserError(f"seeds must be a list or a table in {where}", field="seeds",
+                        fix="write seeds = [1, 2, 3] or seeds = {start = 1, count = 100}")
+    if not seeds:
+        raise UserError("no seeds given", field="seeds", fix="list at least one seed")
+    for s in seeds:
+        if not isinstance(s, int) or isinstance(s, bool) or not 0 <= s <= MAX_SEED:
+            raise UserError(f"seed {s!r} is not an integer in [0, {MAX_SEED}]", field="seeds",
+                            fix="use non-negative integers")
+    if len(set(seeds)) != len(seeds):
+        raise UserError("a seed is listed twice", field="seeds", fix="list each seed once")
+    return tuple(seeds)
+
+
+def load_study(path: str | Path) -> Study:
+    """Read a study file and validate every run's scenario (raises :class:`UserError`)."""
+    import tomllib
+
+    from v2v.config.scenario import load_scenario
+
+    p = Path(path)
+    if not p.is_file():
+        raise UserError(f"study file {str(p)!r} does not exist", field="STUDY", fix="give the path to a study .toml")
+    try:
+        with p.open("rb") as f:
+            data = tomllib.load(f)
+    except tomllib.TOMLDecodeError as exc:
+        raise UserError(f"{p}: not valid TOML ({exc})", field="STUDY", fix="fix the TOML syntax") from None
+    unknown = sorted(set(data) - set(STUDY_KEYS))
+    if unknown:
+        import difflib
+
+        close = difflib.get_close_matches(unknown[0], STUDY_KEYS, n=1)
+        raise UserError(f"unknown key in study {p}", field=unknown[0],
+                        fix=f"did you mean {close[0]!r}?" if close else f"allowed: {', '.join(STUDY_KEYS)}")
+    base: Path | None = None
+    if "base" in data:
+        if not isinstance(data["base"], str) or not data["base"]:
+            raise UserError("base must be a path string", field="base", fix='write base = "../scenario.toml"')
+        base = (p.parent / data["base"]).resolve()
+        if not base.is_file():
+            raise UserError(f"base scenario {str(base)!r} does not exist", field="base",
+                            fix="give a scenario path relative to the study file, or omit base for the default")
+    for flag in ("replay", "save_measurements"):
+        if not isinstance(data.get(flag, False), bool):
+            raise UserError(f"{flag} must be true or false", field=flag, fix=f"write {flag} = false")
+    for table in ("set", "grid"):
+        if not isinstance(data.get(table, {}), dict):
+            raise UserError(f"{table} must be a table", field=table, fix=f"write [{table}] followed by key = value lines")
+    fixed = _flatten_table(data.get("set", {}), "", "set", leaf_lists=False)
+    grid = _flatten_table(data.get("grid", {}), "", "grid", leaf_lists=True)
+    for key, values in grid.items():
+        if key == "seed":
+            raise UserError("seeds are not a grid parameter", field="grid.seed", fix="use seeds = [...] at the top level")
+        if key in fixed:
+            raise UserError(f"{key} is both in [set] and in [grid]", field=f"grid.{key}", fix="keep it in one place")
+        if key in META_COLUMNS:
+            raise UserError(f"{key} is a reserved column name", field=f"grid.{key}", fix="choose another field")
+        if not values:
+            raise UserError("empty list of grid values", field=f"grid.{key}", fix="give at least one value")
+        texts = [toml_inline(v) for v in values]
+        if len(set(texts)) != len(texts):
+            raise UserError("a value is listed twice", field=f"grid.{key}", fix="list each value once")
+    seeds = _read_seeds(data.get("seeds", [1]), str(p))
+    study = Study(source=p.resolve(), base=base, fixed=fixed, grid=grid, seeds=seeds,
+                  replay=data.get("replay", False), save_measurements=data.get("save_measurements", False))
+
+    keys = list(grid)
+    base_digest = hashlib.sha1(base.read_bytes()).hexdigest() if base is not None else "default"
+    labels_by_key = {k: _column_labels(grid[k]) for k in keys}
+    fixed_ov = [f"{k}={toml_inline(v)}" for k, v in fixed.items()]
+    runs: list[RunSpec] = []
+    seen: dict[str, str] = {}
+    for combo in itertools.product(*(range(len(grid[k])) for k in keys)):
+        labels = {k: labels_by_key[k][i] for k, i in zip(keys, combo, strict=True)}
+        grid_ov = [f"{k}={toml_inline(grid[k][i])}" for k, i in zip(keys, combo, strict=True)]
+        desc = ", ".join(f"{k}={v}" for k, v in labels.items()) or "the base scenario"
+        try:
+            first = load_scenario(base, [*fixed_ov, *grid_ov, f"seed={seeds[0]}"])
+        except UserError as exc:
+            raise UserError(f"{exc.message} (study {p.name}, run {desc})", field=exc.field, fix=exc.fix) from None
+        readable = "_".join(_slug(v) for v in labels.values()) or "run"
+        params = {k: toml_inline(grid[k][i]) for k, i in zip(keys, combo, strict=True)}
+        for seed in seeds:  # the seed changes nothing else, and was range-checked above
+            sc = first if seed == seeds[0] else first.model_copy(update={"seed": seed})
+            digest = _run_digest(base_digest, fixed, params, seed)
+            resolved = hashlib.sha1(sc.model_dump_json().encode()).hexdigest()
+            if resolved in seen:
+                raise UserError(f"runs {seen[resolved]} and {desc} resolve to the same scenario", field="grid",
+                                fix="remove the duplicate grid value")
+            seen[resolved] = desc
+            runs.append(RunSpec(run_id=f"{readable}-s{seed}-{digest}", labels=labels, seed=seed, scenario=sc))
+    return dataclasses.replace(study, runs=tuple(runs))
+
+
+def _run_digest(base_digest: str, fixed: dict[str, Any], params: dict[str, str], seed: int) -> str:
+    """Stable id of a run's inputs: the base file's content, [set], the grid values, the seed."""
+    key = {"base": base_digest, "set": {k: toml_inline(v) for k, v in sorted(fixed.items())},
+           "grid": dict(sorted(params.items())), "seed": seed}
+    return hashlib.sha1(json.dumps(key, sort_keys=True).encode()).hexdigest()[:10]
+
+
+# --------------------------------------------------------------------------- one run (in a worker)
+
+
+@dataclass(frozen=True, kw_only=True)
+class RunTask:
+    run_id: str
+    scenario: Any
+    out_dir: str
+    replay: bool
+    save_measurements: bool
+    base_dir: str | None
+
+
+_SUMO_LOCK = threading.Lock()  # libsumo: one simulation per process, never two threads at once
+
+
+def one_line_error(exc: BaseException) -> str:
+    if isinstance(exc, UserError):
+        return exc.one_line()
+    text = " ".join(str(exc).split())
+    return f"{type(exc).__name__}: {text}" if text else type(exc).__name__
+
+
+def read_summary(run_dir: Path) -> dict[str, Any] | None:
+    """The run's summary.json, or None if the run is not complete."""
+    try:
+        with (Path(run_dir) / "summary.json").open(encoding="utf-8") as f:
+            s = json.load(f)
+    except (OSError, ValueError):
+        return None
+    return s if isinstance(s, dict) else None
+
+
+def _flatten_numbers(prefix: str, value: Any, out: dict[str, float]) -> None:
+    if isinstance(value, dict):
+        for k, v in value.items():
+            _flatten_numbers(f"{prefix}.{k}", v, out)
+    elif isinstance(value, bool):
+        out[prefix] = float(value)
+    elif isinstance(value, int | float):
+        out[prefix] = float(value)
+    elif value is None:
+        out[prefix] = float("nan")  # json_safe wrote NaN as null
+
+
+def flatten_summary(summary: dict[str, Any]) -> dict[str, float]:
+    """summary.json -> ``{column: number}``: ``simulated_s``, ``gnss.epochs``, ...,
+    ``<solution>.<vehicle>.along.std``, ``<solution>.measurements.<kind>.<field>``."""
+    out: dict[str, float] = {}
+    for k, v in summary.items():
+        if k not in _SUMMARY_SKIP:
+            _flatten_numbers(k, v, out)
+    for sol, s in (summary.get("statistics") or {}).items():
+        for veh, entry in (s.get("vehicles") or {}).items():
+            _flatten_numbers(f"{sol}.{veh}", entry, out)
+        for k, v in s.items():
+            if k != "vehicles":
+                _flatten_numbers(f"{sol}.{k}", v, out)
+    return out
+
+
+def execute_run(task: RunTask) -> dict[str, Any]:
+    """Run one scenario; never raises (libsumo's exceptions do not pickle): returns a plain dict."""
+    t0 = time.perf_counter()
+    try:
+        from v2v.run import run_scenario
+
+        with _SUMO_LOCK:
+            run_scenario(task.scenario, Path(task.out_dir), quiet=True, replay=task.replay,
+                         save_measurements=task.save_measurements,
+                         base_dir=Path(task.base_dir) if task.base_dir else None)
+        summary = read_summary(Path(task.out_dir))
+        if summary is None:
+            raise RuntimeError(f"the run finished but {task.out_dir}/summary.json is not readable")
+        return {"run_id": task.run_id, "status": "ok", "error": "", "wall_s": float(summary.get("wall_s", math.nan)),
+                "metrics": flatten_summary(summary), "pid": os.getpid()}
+    except Exception as exc:  # noqa: BLE001 - every failure becomes a row, the study goes on
+        return {"run_id": task.run_id, "status": "failed", "error": one_line_error(exc),
+                "wall_s": round(time.perf_counter() - t0, 3), "metrics": {}, "pid": os.getpid()}
+
+
+# --------------------------------------------------------------------------- the sweep
+
+
+@dataclass(frozen=True, kw_only=True)
+class SweepResult:
+    out_dir: Path
+    total: int
+    executed: int  # runs started by this call
+    skipped: int  # runs already complete in the output folder
+    failed: int
+    wall_s: float
+    table: Any  # the runs.parquet DataFrame
+
+
+def _row(spec: RunSpec, status: str, error: str, wall_s: float, metrics: dict[str, float]) -> dict[str, Any]:
+    return {"run_id": spec.run_id, **spec.labels, "seed": spec.seed, "status": status, "error": error,
+            "wall_s": wall_s, **metrics}
+
+
+def _runs_table(study: Study, rows: dict[str, dict[str, Any]]):
+    import pandas as pd
+
+    ordered = [rows[s.run_id] for s in study.runs if s.run_id in rows]
+    head = ["run_id", *study.grid_columns, "seed", "status", "error", "wall_s"]
+    if not ordered:
+        return pd.DataFrame({c: pd.Series(dtype=object if c in ("run_id", "status", "error") else float) for c in head})
+    metrics: dict[str, None] = {}
+    for r in ordered:
+        metrics.update(dict.fromkeys(k for k in r if k not in head))
+    df = pd.DataFrame(ordered, columns=[*head, *metrics])
+    df["seed"] = df["seed"].astype("int64")
+    df["wall_s"] = df["wall_s"].astype(float)
+    for c in metrics:
+        df[c] = df[c].astype(float)
+    return df
+
+
+def _write_runs(out: Path, study: Study, rows: dict[str, dict[str, Any]]):
+    from v2v.io.atomic import atomic_write_parquet
+
+    df = _runs_table(study, rows)
+    atomic_write_parquet(out / RUNS_FILE, df)
+    return df
+
+
+def _write_sweep_json(out: Path, study: Study) -> None:
+    from v2v.io.atomic import atomic_write_json
+
+    atomic_write_json(out / SWEEP_FILE, {
+        "study": str(study.source),
+        "base": str(study.base) if study.base else None,
+        "set": {k: toml_inline(v) for k, v in study.fixed.items()},
+        "grid": {k: [toml_inline(v) for v in vals] for k, vals in study.grid.items()},
+        "grid_columns": study.grid_columns,
+        "seeds": list(study.seeds),
+        "runs": len(study.runs),
+    })
+
+
+def _remove_staging(runs_dir: Path) -> None:
+    """Remove the hidden staging folders (``.<run_id>.*.partial``) of runs that never completed."""
+    for d in runs_dir.glob(".*.partial"):
+        shutil.rmtree(d, ignore_errors=True)
+
+
+_SCHEDULER_RE = re.compile(r"^(?:tcp://)?(?P<host>\[[0-9A-Fa-f:.]+\]|[A-Za-z0-9._-]+):(?P<port>\d{1,5})$")
+
+
+def _check_scheduler_reachable(address: str, timeout_s: float = 5.0) -> None:
+    """Fail fast, in one line, on a malformed or unreachable ``tcp://HOST:PORT``."""
+    import socket
+
+    m = _SCHEDULER_RE.match(address.strip())
+    if m is None:
+        raise UserError(f"{address!r} is not a scheduler address", field="--scheduler",
+                        fix="give tcp://HOST:PORT, as printed by `dask scheduler`")
+    host, port = m["host"].strip("[]"), int(m["port"])
+    try:
+        socket.create_connection((host, port), timeout=timeout_s).close()
+    except OSError as exc:
+        raise UserError(f"no scheduler answers at {address} ({one_line_error(exc)})", field="--scheduler",
+                        fix="start one (`dask scheduler`) or check the host and port") from None
+
+
+def _open_client(scheduler: str | None, workers: int | None, host: str, n_pending: int):
+    """(client, cluster or None). The local cluster: one single-threaded worker process per core."""
+    import logging
+    import warnings
+
+    from dask.distributed import Client, LocalCluster
+
+    if scheduler:
+        try:
+            client = Client(scheduler, timeout="15s", set_as_default=False)
+        except (OSError, ValueError) as exc:
+            raise UserError(f"cannot connect to the scheduler {scheduler!r}: {one_line_error(exc)}",
+                            field="--scheduler", fix="start one (dask scheduler) or give its tcp://HOST:PORT") from None
+        return client, None
+    cores = len(os.sched_getaffinity(0)) if hasattr(os, "sched_getaffinity") else (os.cpu_count() or 1)
+    n = max(1, min(workers or cores, n_pending))
+    # Worker processes inherit an ignored SIGINT: Ctrl-C in the terminal reaches only this process,
+    # which then cancels the study and closes the cluster (instead of every worker dying mid-write).
+    in_main = threading.current_thread() is threading.main_thread()
+    old_sigint = signal.signal(signal.SIGINT, signal.SIG_IGN) if in_main else None
+    try:
+        with warnings.catch_warnings():  # the scheduler's HTTP endpoint moves off a busy :8787 and says so
+            warnings.filterwarnings("ignore", message="Port .* is already in use")
+            cluster = LocalCluster(n_workers=n, threads_per_worker=1, processes=True, host=host,
+                                   dashboard_address=None, silence_logs=logging.ERROR)
+    finally:
+        if in_main:
+            signal.signal(signal.SIGINT, old_sigint)
+    return Client(cluster, set_as_default=False), cluster
+
+
+def run_study(
+    study: Study | str | Path,
+    out_dir: str | Path,
+    *,
+    scheduler: str | None = None,
+    workers: int | None = None,
+    host: str = "127.0.0.1",
+    quiet: bool = True,
+    flush_every_s: float = 1.0,
+) -> SweepResult:
+    """Run every not-yet-complete run of a study; write ``runs.parquet``. Returns counts and the table."""
+    from dask.distributed import as_completed
+    from tqdm import tqdm
+
+    if not isinstance(study, Study):
+        study = load_study(study)
+    if workers is not None and workers < 1:
+        raise UserError(f"--workers must be >= 1 (got {workers})", field="--workers", fix="give a positive count")
+    if workers is not None and scheduler:
+        raise UserError("--workers sizes the local cluster only", field="--workers",
+                        fix="drop --workers when you give --scheduler (that cluster's workers run the study)")
+    wall0 = time.perf_counter()
+    out = Path(out_dir).resolve()
+    runs_dir = out / "runs"
+    rows: dict[str, dict[str, Any]] = {}
+    pending: list[RunSpec] = []
+    for spec in study.runs:
+        summary = read_summary(runs_dir / spec.run_id)
+        if summary is None:
+            pending.append(spec)
+        else:
+            rows[spec.run_id] = _row(spec, "ok", "", float(summary.get("wall_s", math.nan)), flatten_summary(summary))
+    skipped = len(rows)
+    failed = 0
+    if not quiet:
+        print(f"sweep: {len(study.runs)} runs ({skipped} already complete, {len(pending)} to run) -> {out}",
+              file=sys.stderr, flush=True)
+    if scheduler and pending:
+        _check_scheduler_reachable(scheduler)  # before anything is written
+    runs_dir.mkdir(parents=True, exist_ok=True)
+    _remove_staging(runs_dir)  # left by a run killed mid-write
+    _write_sweep_json(out, study)
+    _write_runs(out, study, rows)
+    if pending:
+        by_id = {s.run_id: s for s in pending}
+        client, cluster = _open_client(scheduler, workers, host, len(pending))
+        futures = []
+        try:
+            for spec in pending:
+                task = RunTask(run_id=spec.run_id, scenario=spec.scenario, out_dir=str(runs_dir / spec.run_id),
+                               replay=study.replay, save_measurements=study.save_measurements,
+                               base_dir=str(study.base_dir) if study.base_dir else None)
+                futures.append(client.submit(execute_run, task, key=f"v2v-run-{spec.run_id}", pure=False))
+            last_flush = time.monotonic()
+            with tqdm(total=len(pending), unit="run", desc="sweep", disable=True if quiet else None,
+                      file=sys.stderr) as bar:
+                for fut in as_completed(futures, loop=client.loop):
+                    spec = by_id[fut.key.removeprefix("v2v-run-")]
+                    try:
+                        res = fut.result()
+                    except BaseException as exc:  # noqa: BLE001 - a killed worker, a cancelled task
+                        if isinstance(exc, KeyboardInterrupt):
+                            raise
+                        res = {"status": "failed", "error": f"dask: {one_line_error(exc)}",
+                               "wall_s": math.nan, "metrics": {}}
+                    failed += res["status"] != "ok"
+                    rows[spec.run_id] = _row(spec, res["status"], res["error"], res["wall_s"], res["metrics"])
+                    bar.update(1)
+                    bar.set_postfix(failed=failed)
+                    if time.monotonic() - last_flush >= flush_every_s:
+                        _write_runs(out, study, rows)
+                        last_flush = time.monotonic()
+        finally:
+            _write_runs(out, study, rows)
+            client.cancel([f for f in futures if not f.done()])
+            client.close()
+            if cluster is not None:
+                cluster.close()
+                _remove_staging(runs_dir)  # its workers are gone: nothing is being written any more
+    df = _write_runs(out, study, rows)
+    wall = time.perf_counter() - wall0
+    return SweepResult(out_dir=out, total=len(study.runs), executed=len(pending), skipped=skipped, failed=failed,
+                       wall_s=wall, table=df)
+
+
+# --------------------------------------------------------------------------- the report
+
+_STD_RE = re.compile(r"^(?P<sol>.+?)\.(?P<veh>[^.]+\.\d+)\.(?P<comp>along|across|up)\.std$")
+
+
+def t_interval_half_width(values, confidence: float = 0.95) -> tuple[int, float, float, float]:
+    """(n, mean, sample std, half-width of the two-sided Student-t confidence interval of the mean)."""
+    import numpy as np
+    from scipy import stats
+
+    x = np.asarray(values, dtype=float)
+    x = x[np.isfinite(x)]
+    n = int(x.size)
+    if n == 0:
+        return 0, math.nan, math.nan, math.nan
+    mean = float(x.mean())
+    if n < 2:
+        return 1, mean, math.nan, math.nan
+    std = float(x.std(ddof=1))
+    half = float(stats.t.ppf(0.5 + confidence / 2.0, n - 1) * std / math.sqrt(n))
+    return n, mean, std, half
+
+
+def _grid_columns(runs_dir: Path, df) -> list[str]:
+    try:
+        with (runs_dir / SWEEP_FILE).open(encoding="utf-8") as f:
+            cols = json.load(f)["grid_columns"]
+        return [c for c in cols if c in df.columns]
+    except (OSError, ValueError, KeyError):
+        cols = list(df.columns)
+        return cols[cols.index("run_id") + 1: cols.index("seed")] if "seed" in cols else []
+
+
+def _with_vehicle_means(df):
+    """Add ``<solution>.vehicles_mean.<comp>.std``: the run's mean over its non-lead vehicles."""
+    import pandas as pd
+
+    groups: dict[tuple[str, str], list[str]] = {}
+    for c in df.columns:
+        m = _STD_RE.match(c)
+        if m:
+            groups.setdefault((m["sol"], m["comp"]), []).append(c)
+    extra = {f"{sol}.vehicles_mean.{comp}.std": df[cols].mean(axis=1, skipna=True)
+             for (sol, comp), cols in groups.items()}
+    return pd.concat([df, pd.DataFrame(extra, index=df.index)], axis=1), sorted({s for s, _ in groups})
+
+
+def aggregate_runs(df, grid_cols: list[str]):
+    """Long table: grid values, metric, n, mean, std, ci95_half, ci95_low, ci95_high (ok runs only)."""
+    import pandas as pd
+
+    ok = df[df["status"] == "ok"]
+    metrics = [c for c in ok.columns if c not in grid_cols and c not in META_COLUMNS[:-1]
+               and pd.api.types.is_numeric_dtype(ok[c])]
+    records = []
+    groups = ok.groupby(grid_cols, sort=False, dropna=False) if grid_cols else [((), ok)]
+    for key, g in groups:
+        key = key if isinstance(key, tuple) else (key,)
+        for m in metrics:
+            n, mean, std, half = t_interval_half_width(g[m].to_numpy())
+            if n == 0:
+                continue
+            records.append({**dict(zip(grid_cols, key, strict=True)), "metric": m, "n": n, "mean": mean, "std": std,
+                            "ci95_half": half, "ci95_low": mean - half, "ci95_high": mean + half})
+    return pd.DataFrame(records, columns=[*grid_cols, "metric", "n", "mean", "std", "ci95_half", "ci95_low", "ci95_high"])
+
+
+def _fmt(mean: float, half: float) -> str:
+    if not math.isfinite(mean):
+        return "-"
+    return f"{mean:.3f} ± {half:.3f}" if math.isfinite(half) else f"{mean:.3f}"
+
+
+def _md_table(header: list[str], rows: list[list[Any]]) -> list[str]:
+    lines = ["| " + " | ".join(header) + " |", "|" + "|".join("---" for _ in header) + "|"]
+    lines += ["| " + " | ".join(str(x) for x in r) + " |" for r in rows]
+    return lines
+
+
+@dataclass(frozen=True, kw_only=True)
+class ReportResult:
+    markdown: Path
+    csv: Path
+    figure: Path
+    table: Any
+
+
+def write_report(sweep_dir: str | Path, out_dir: str | Path | None = None) -> ReportResult:
+    """Aggregate ``runs.parquet`` by grid values: mean and 95 % t-interval across seeds of every metric."""
+    import pandas as pd
+
+    src = Path(sweep_dir)
+    runs_file = src / RUNS_FILE
+    if not runs_file.is_file():
+        raise UserError(f"no {RUNS_FILE} in {src}", field="DIR", fix="give the --out folder of a `v2v sweep` run")
+    df = pd.read_parquet(runs_file)
+    out = Path(out_dir) if out_dir is not None else src
+    out.mkdir(parents=True, exist_ok=True)
+    grid_cols = _grid_columns(src, df)
+    df, solutions = _with_vehicle_means(df)
+    agg = aggregate_runs(df, grid_cols)
+
+    from v2v.io.atomic import atomic_write, atomic_write_text
+
+    csv_path, md_path, png_path = out / "report.csv", out / "report.md", out / "report.png"
+    atomic_write(csv_path, lambda p: agg.to_csv(p, index=False))
+    atomic_write_text(md_path, _report_markdown(src, df, agg, grid_cols, solutions))
+    atomic_write(png_path, lambda p: _report_figure(agg, grid_cols, solutions, p))
+    return ReportResult(markdown=md_path, csv=csv_path, figure=png_path, table=agg)
+
+
+def _lookup(agg, grid_cols: list[str], key: tuple, metric: str) -> tuple[float, float]:
+    sel = agg["metric"] == metric
+    for c, v in zip(grid_cols, key, strict=True):
+        sel &= agg[c].isna() if _isnan(v) else agg[c] == v
+    hit = agg[sel]
+    if hit.empty:
+        return math.nan, math.nan
+    return float(hit["mean"].iloc[0]), float(hit["ci95_half"].iloc[0])
+
+
+def _isnan(v: Any) -> bool:
+    return isinstance(v, float) and math.isnan(v)
+
+
+def _report_markdown(src: Path, df, agg, grid_cols: list[str], solutions: list[str]) -> str:
+    n_ok = int((df["status"] == "ok").sum())
+    n_failed = int((df["status"] != "ok").sum())
+    lines = [f"# Sweep report: {src}", "",
+             f"{len(df)} runs: {n_ok} ok, {n_failed} failed. Each cell: mean ± half-width of the 95 % "
+             "Student-t confidence interval of the mean across seeds (no interval with one seed).", ""]
+    groups = df.groupby(grid_cols, sort=False, dropna=False) if grid_cols else [((), df)]
+    keys, runs_rows = [], []
+    for key, g in groups:
+        key = key if isinstance(key, tuple) else (key,)
+        keys.append(key)
+        ok = g[g["status"] == "ok"]
+        runs_rows.append([*key, len(ok), len(g) - len(ok), _fmt(*_lookup(agg, grid_cols, key, "simulated_s")),
+                          f"{ok['wall_s'].mean():.2f}" if len(ok) else "-"])
+    lines += ["## Runs", ""]
+    lines += _md_table([*grid_cols, "ok", "failed", "simulated_s", "mean wall_s"], runs_rows)
+    lines.append("")
+    if solutions:
+        lines += ["## Relative position error std per solution and vehicle (m)", ""]
+        rows = []
+        for key in keys:
+            for sol in solutions:
+                vehicles = sorted({m["veh"] for c in agg["metric"].unique() if (m := _STD_RE.match(c)) and m["sol"] == sol})
+                for veh in [*vehicles, "vehicles_mean"]:
+                    along = _lookup(agg, grid_cols, key, f"{sol}.{veh}.along.std")
+                    if not math.isfinite(along[0]):
+                        continue
+                    across = _lookup(agg, grid_cols, key, f"{sol}.{veh}.across.std")
+                    avail = _lookup(agg, grid_cols, key, f"{sol}.{veh}.availability")
+                    rows.append([*key, sol, veh, _fmt(*along), _fmt(*across), _fmt(*avail)])
+        lines += _md_table([*grid_cols, "solution", "vehicle", "along std", "across std", "availability"], rows)
+    else:
+        lines += ["## GNSS (no solutions were run)", ""]
+        rows = [[*key, *(_fmt(*_lookup(agg, grid_cols, key, m)) for m in _FALLBACK_METRICS)] for key in keys]
+        lines += _md_table([*grid_cols, *_FALLBACK_METRICS], rows)
+    failed = df[df["status"] != "ok"]
+    if len(failed):
+        lines += ["", "## Failed runs", ""]
+        lines += _md_table(["run_id", "error"], [[r.run_id, str(r.error).replace("|", "/")] for r in failed.head(50).itertuples()])
+        if len(failed) > 50:
+            lines.append(f"... and {len(failed) - 50} more (see runs.parquet)")
+    lines += ["", "All metrics, per grid combination: report.csv. Figure: report.png.", ""]
+    return "\n".join(lines)
+
+
+_FALLBACK_METRICS = ("gnss.satellites_tracked_mean", "gnss.nlos_fraction")
+
+
+def _report_figure(agg, grid_cols: list[str], solutions: list[str], path: Path) -> None:
+    import matplotlib
+
+    matplotlib.use("Agg")
+    import matplotlib.pyplot as plt
+    import numpy as np
+
+    x_cols = [c for c in grid_cols if c != "solutions"]
+    if solutions:
+        panels = [("along", "along-track error std (m)"), ("across", "across-track error std (m)")]
+        series = solutions
+    else:
+        panels = [(m, m) for m in _FALLBACK_METRICS]
+        series = [""]
+    fig, axes = plt.subplots(1, len(panels), figsize=(6.0 * len(panels), 4.2), squeeze=False)
+    xkeys: list[str] = []
+    for r in agg.to_dict("records"):
+        k = ", ".join(str(r[c]) for c in x_cols) or "all runs"
+        if k not in xkeys:
+            xkeys.append(k)
+    width = 0.8 / max(len(series), 1)
+    for ax, (panel, ylabel) in zip(axes[0], panels, strict=True):
+        for j, sol in enumerate(series):
+            metric = f"{sol}.vehicles_mean.{panel}.std" if solutions else panel
+            sub = agg[agg["metric"] == metric]
+            if sub.empty:
+                continue
+            xs, ys, es = [], [], []
+            for r in sub.to_dict("records"):
+                k = ", ".join(str(r[c]) for c in x_cols) or "all runs"
+                xs.append(xkeys.index(k) + (j - (len(series) - 1) / 2) * width)
+                ys.append(r["mean"])
+                es.append(r["ci95_half"] if math.isfinite(r["ci95_half"]) else 0.0)
+            ax.bar(xs, ys, width=width * 0.95, yerr=es, capsize=4, label=sol or None)
+        ax.set_xticks(np.arange(len(xkeys)), xkeys, rotation=20, ha="right")
+        ax.set_ylabel(ylabel)
+        ax.grid(axis="y", alpha=0.3)
+        if solutions:
+            ax.set_title(f"{panel}: mean over vehicles, 95 % CI across seeds")
+            ax.legend(fontsize=8)
+    fig.tight_layout()
+    fig.savefig(path, format="png", dpi=120)
+    plt.close(fig)
+
+
+# --------------------------------------------------------------------------- command line
+
+
+class _DefaultRunParser:
+    """Mixin: ``v2v sweep STUDY.toml`` means ``v2v sweep run STUDY.toml``."""
+
+    def parse_known_args(self, args=None, namespace=None):
+        args = list(sys.argv[1:] if args is None else args)
+        if args and args[0] not in ("run", "report", "-h", "--help"):
+            args = ["run", *args]
+        return super().parse_known_args(args, namespace)  # type: ignore[misc]
+
+
+def add_sweep_parser(subparsers) -> argparse.ArgumentParser:
+    """Add ``sweep`` (sub-commands ``run``, the default, and ``report``) to the ``v2v`` sub-commands."""
+    s = subparsers.add_parser(
+        "sweep", help="Monte Carlo studies: a grid of scenario variants x seeds on a Dask cluster",
+        description="v2v sweep [run] STUDY.toml [--out DIR] ... | v2v sweep report DIR [--out DIR2]",
+    )
+    parser_class = type(s)  # the CLI's parser class (one-line errors)
+    s.__class__ = type("SweepParser", (_DefaultRunParser, parser_class), {})
+    ssub = s.add_subparsers(dest="sweep_cmd", required=True, parser_class=parser_class)
+    r = ssub.add_parser("run", help="run a study (the default sub-command)",
+                        description="Run every run of a study that is not yet complete in --out.")
+    r.add_argument("study", type=Path, help="study .toml: base scenario, [grid], seeds")
+    r.add_argument("--out", type=Path, default=None, help="output folder (default: sweeps/<study file stem>)")
+    r.add_argument("--scheduler", default=None, metavar="tcp://HOST:PORT",
+                   help="run on an existing Dask scheduler (its workers must see --out) instead of a local cluster")
+    r.add_argument("--workers", type=int, default=None, help="local worker processes (default: one per core)")
+    r.add_argument("--host", default="127.0.0.1", help="address the local cluster binds to (default 127.0.0.1)")
+    r.add_argument("--quiet", action="store_true", help="no progress bar")
+    p = ssub.add_parser("report", help="aggregate a sweep's runs.parquet: means and 95 %% CIs, table and figure")
+    p.add_argument("sweep_dir", type=Path, metavar="DIR", help="the --out folder of a sweep")
+    p.add_argument("--out", type=Path, default=None, help="where to write report.md/.csv/.png (default: DIR)")
+    return s
+
+
+def cmd_sweep(args) -> int:
+    if args.sweep_cmd == "report":
+        rep = write_report(args.sweep_dir, args.out)
+        print(f"report: {rep.markdown}, {rep.csv}, {rep.figure}")
+        return 0
+    out = args.out or Path("sweeps") / Path(args.study).stem
+    res = run_study(args.study, out, scheduler=args.scheduler, workers=args.workers, host=args.host, quiet=args.quiet)
+    if not args.quiet:
+        print(f"{res.total} runs: {res.executed} executed ({res.failed} failed), {res.skipped} already complete; "
+              f"wall {res.wall_s:.1f} s; table {res.out_dir / RUNS_FILE}")
+        if res.failed:
+            print(f"{res.failed} runs failed: their one-line errors are in the `error` column", file=sys.stderr)
+    return 0
