@@ -1,0 +1,97 @@
+"""Smoke tests of experiments/lane_level.py and experiments/fcw_study.py (--quick), content checked.
+
+Both run the ``open`` variant (urban_canyon streets, buildings removed) so that GNSS works
+with the nominal constellation; the canyon itself denies GNSS (about 2 satellites tracked).
+"""
+
+from __future__ import annotations
+
+import importlib.util
+from pathlib import Path
+
+import numpy as np
+import pandas as pd
+import pytest
+
+from v2v.apps.fcw import FcwConfig, pair_kinematics
+from v2v.metrics.lane import protection_factor
+
+EXP = Path(__file__).resolve().parents[1] / "experiments"
+SOLS = ["GPS", "GPS+UWB", "GPS+Bearing", "GPS+UWB+Bearing"]
+
+
+def _load(name: str):
+    spec = importlib.util.spec_from_file_location(f"exp_{name}", EXP / f"{name}.py")
+    assert spec is not None and spec.loader is not None
+    mod = importlib.util.module_from_spec(spec)
+    spec.loader.exec_module(mod)
+    return mod
+
+
+def test_lane_level_quick(tmp_path: Path):
+    assert _load("lane_level").main(["--quick", "--variants", "open", "--out", str(tmp_path)]) == 0
+    t = pd.read_csv(tmp_path / "lane_level.csv")
+    pooled = pd.read_csv(tmp_path / "lane_level_solutions.csv")
+    assert (tmp_path / "lane_level_across_cdf.png").stat().st_size > 10_000
+    assert "correct_lane" in (tmp_path / "lane_level.md").read_text()
+    assert sorted(t["solution"].unique()) == sorted(SOLS) and list(pooled["solution"]) == SOLS
+    assert set(t["vehicle"]) == {"c1.1", "c1.2"}
+    # independent recomputation from the run folder: rotate with the lead's true azimuth by hand
+    folder = tmp_path / "runs" / "open"
+    ep = pd.read_parquet(folder / "epochs.parquet")
+    tr = pd.read_parquet(folder / "truth.parquet")
+    lead = tr[tr["is_lead"]].assign(k=lambda d: np.round(d["t_s"] * 1000).astype(int)).set_index("k")["azimuth_rad"]
+    ep = ep[ep["initialized"]].copy()
+    az = lead.reindex(np.round(ep["t_s"] * 1000).astype(int)).to_numpy()
+    for src in ("true", "est"):
+        ep[f"{src}_lat"] = -ep[f"{src}_e_m"] * np.cos(az) + ep[f"{src}_n_m"] * np.sin(az)
+    geom = np.round(ep["true_lat"] / ep["lane_width_m"])
+    est = np.round(ep["est_lat"] / ep["lane_width_m"])
+    for sol in SOLS:
+        m = (ep["solution"] == sol).to_numpy()
+        row = pooled[pooled["solution"] == sol].iloc[0]
+        assert row["correct_lane_geom"] == pytest.approx(np.mean(est[m] == geom[m]), abs=1e-12)
+        assert row["across_pl_mean_m"] == pytest.approx(protection_factor(1e-3) * ep.loc[m, "sigma_across_m"].mean())
+        # open sky: the across error stays well inside half a lane (1.6 m) -> right lane almost always
+        assert row["across_abs_p95_m"] < 1.0 and row["correct_lane_geom"] > 0.95
+        assert row["across_abs_p50_m"] <= row["across_abs_p95_m"] <= row["across_abs_p99_m"]
+    # lanes 0 and 1 round robin: c1.1 departs in the lane left of the lead (relative lane +1)
+    assert tr.loc[tr["vehicle"] == "c1.1", "lane_index"].iloc[0] == 1
+    assert (t.loc[t["vehicle"] == "c1.1", "same_edge"] > 0.5).all()
+    assert (t["lane_model_ok"] > 0.8).all()
+
+
+def test_fcw_study_quick(tmp_path: Path):
+    assert _load("fcw_study").main(["--quick", "--variants", "open", "--out", str(tmp_path)]) == 0
+    sol = pd.read_csv(tmp_path / "fcw_solutions.csv")
+    pairs = pd.read_csv(tmp_path / "fcw_pairs.csv")
+    br = pd.read_csv(tmp_path / "fcw_braking.csv")
+    ev = pd.read_csv(tmp_path / "fcw_events.csv")
+    assert (tmp_path / "fcw_ttc_open.png").stat().st_size > 10_000
+    assert list(sol["solution"]) == SOLS
+    # in-line cluster: c1.1 follows c1.0, c1.2 follows c1.1
+    assert set(zip(pairs["follower"], pairs["ahead"], strict=True)) == {("c1.1", "c1.0"), ("c1.2", "c1.1")}
+    # the first traffic light: the lead brakes hard (SUMO decel 4.5 m/s^2 bound) within 30 s
+    lead_br = br[br["vehicle"] == "c1.0"]
+    assert len(lead_br) >= 1 and (lead_br["min_accel_mps2"] < -2.0).all() and (lead_br["min_accel_mps2"] >= -4.5 - 1e-6).all()
+    assert (sol["detected"] + sol["missed"] == sol["truth_warnings"]).all()
+    # a truth warning in an event window means the true TTC dropped below the threshold there
+    warned = ev["outcome"].isin(["hit", "missed"])
+    assert (ev.loc[warned, "min_ttc_true_s"] < FcwConfig().ttc_threshold_s).all()
+    assert (ev.loc[~warned, "min_ttc_true_s"].fillna(np.inf) >= 0).all()
+    # open sky, all sensors: metre-free gap, decimetre-per-second closing speed
+    best = sol[sol["solution"] == "GPS+UWB+Bearing"].iloc[0]
+    assert best["gap_err_rms_m"] < 1.0 and best["closing_err_rms_mps"] < 0.5
+    # truth closing speed = speed difference along a straight lane (independent of the ENU algebra)
+    folder = tmp_path / "runs" / "open"
+    ep = pd.read_parquet(folder / "epochs.parquet")
+    tr = pd.read_parquet(folder / "truth.parquet")
+    k = pair_kinematics(ep, "GPS", "c1.1", "c1.0", "c1.0", source="true", length_ahead_m=4.8)
+    tk = tr.assign(k=np.round(tr["t_s"] * 1000).astype(int)).set_index(["vehicle", "k"])
+    kk = np.round(k["t_s"] * 1000).astype(int)
+    v_f = tk.loc["c1.1", "speed_mps"].reindex(kk).to_numpy()
+    v_a = tk.loc["c1.0", "speed_mps"].reindex(kk).to_numpy()
+    same_edge = tk.loc["c1.1", "edge"].reindex(kk).to_numpy() == tk.loc["c1.0", "edge"].reindex(kk).to_numpy()
+    straight = same_edge & ~pd.Series(tk.loc["c1.0", "edge"].reindex(kk).to_numpy()).str.startswith(":").to_numpy()
+    assert straight.sum() > 50
+    np.testing.assert_allclose(k["closing_mps"].to_numpy()[straight], (v_f - v_a)[straight], atol=0.05)

@@ -1,0 +1,270 @@
+"""Lane-level relative positioning: relative lane, where-in-lane error and integrity.
+
+Inputs are the run folder's ``epochs.parquet`` rows (one per time, solution and non-lead
+vehicle; relative positions are *vehicle minus lead* in ENU at the lead) and, optionally,
+``truth.parquet`` (edges and azimuths). Frame: along = the lead's heading, across = 90 deg
+to its left (ISO 8855), as in :mod:`v2v.metrics.errors`.
+
+Relative lane (positive = the other vehicle is to the lead's left; SUMO lane index 0 is the
+rightmost lane, so index differences have the same sign):
+
+* **true** relative lane: ``lane_index(vehicle) - lane_index(lead)`` when both are on the same
+  (non-internal) edge; otherwise (different edges, junction-internal lanes, or no truth table
+  to tell) ``round(true_across / lane_width)``;
+* **geometric** relative lane: ``round(true_across / lane_width)`` always — what a perfect
+  relative position estimate would give under the straight-road lane model below;
+* **estimated** relative lane: ``round(est_across / lane_width)``, ``est_across`` the estimated
+  relative position rotated into the lead frame.
+
+The lane model assumes a straight road: on a curve or after a turn the across-track offset
+of a vehicle 30 m behind is not its lane offset, so ``lane_model_ok`` (geometric = true)
+reports how often the model itself holds, and two correct-lane rates are given: against the
+lane truth (what an application gets) and against the geometric lane (the positioning
+error alone). ``round`` is symmetric round-half-away-from-zero: an across-track offset of
+exactly half a lane width is assigned to the neighbouring lane (``sign(x) floor(|x| + 1/2)``).
+Lateral offsets inside the lane (SUMO's sublane offset) are not removed: a real system
+would not know the other car's offset either.
+
+Rotation into the lead frame: this module uses the lead's **true** azimuth (from
+``truth.parquet``, a ``lead_azimuth_rad`` column, or recovered from the rows' own error
+rotation, see :func:`lead_azimuth_from_errors`), consistently with ``along_err_m`` /
+``across_err_m``; it therefore scores the relative *position* only. A deployed lead rotates
+with its *own* azimuth estimate; an azimuth error ``d_alpha`` adds ``along * d_alpha`` to the
+across-track offset (0.1 m at 30 m for 0.2 deg, Petovello et al. fig. 14), which is not
+included here.
+
+Integrity (per axis, Gaussian error model of the filter's own 1-sigma):
+
+* misleading-information rate at ``k = 3``: fraction of initialized epochs with
+  ``|error| > 3 sigma`` (0.27 % expected for a consistent Gaussian filter);
+* protection level ``PL = k_PL sigma`` with ``k_PL = Phi^-1(1 - P_IR / 2)`` for the two-sided
+  integrity risk ``P_IR`` (3.29 for 1e-3); MI at the PL = ``|error| > PL``;
+* availability = fraction of all epochs (uninitialized ones count as unavailable) with
+  ``PL <= AL``; hazardously misleading information (HMI) = ``|error| > AL`` while
+  ``PL <= AL`` (fraction of all epochs). Stanford-diagram classes after the civil-aviation
+  convention (RTCA DO-229), applied to relative positioning.
+
+Alert limits are parameters. Defaults: **across 1.0 m** — with 3.2-3.7 m lanes, the relative
+lane flips at half a lane width (1.6-1.85 m); 1.0 m leaves 0.6 m or more for the cars'
+lateral offsets inside their lanes (lane level, "which lane"); **along 2.0 m** — about 0.4 car
+lengths, the scale at which a following-distance application misjudges the gap. Both are
+choices documented here, not a standard's numbers.
+"""
+
+from __future__ import annotations
+
+import numpy as np
+import pandas as pd
+from numpy.typing import ArrayLike, NDArray
+from scipy import stats
+
+F64 = NDArray[np.float64]
+
+ACROSS_ALERT_LIMIT_M = 1.0
+ALONG_ALERT_LIMIT_M = 2.0
+INTEGRITY_RISK = 1e-3
+K_SIGMA = 3.0
+
+
+def round_half_away(x: ArrayLike) -> F64:
+    """Symmetric rounding, ties away from zero: 0.5 -> 1, -0.5 -> -1, 1.49 -> 1 (NaN stays NaN).
+
+    Values within 1e-9 of a tie count as the tie (a rotated half lane width is 0.4999999999...).
+    """
+    a = np.asarray(x, dtype=float)
+    return np.sign(a) * np.floor(np.abs(a) + 0.5 + 1e-9)
+
+
+def protection_factor(integrity_risk: float) -> float:
+    """Two-sided Gaussian multiplier ``k`` with ``P(|e| > k sigma) = integrity_risk`` (3.29 for 1e-3)."""
+    if not 0.0 < integrity_risk < 1.0:
+        raise ValueError(f"integrity_risk must be in (0, 1), got {integrity_risk!r}")
+    return float(stats.norm.isf(integrity_risk / 2.0))
+
+
+def lead_azimuth_from_errors(err_e_m: ArrayLike, err_n_m: ArrayLike, along_err_m: ArrayLike,
+                             across_err_m: ArrayLike) -> F64:
+    """Recover the lead azimuth used to rotate an ENU error into (along, across).
+
+    With ``along = e sin(a) + n cos(a)`` and ``across = -e cos(a) + n sin(a)``,
+    ``along - i across = (n + i e) exp(-i a)``, hence ``a = arg(n + i e) - arg(along - i across)``.
+    Exact whenever the horizontal error is not zero; NaN where it is below 1 nm.
+    """
+    z_enu = np.asarray(err_n_m, dtype=float) + 1j * np.asarray(err_e_m, dtype=float)
+    z_lf = np.asarray(along_err_m, dtype=float) - 1j * np.asarray(across_err_m, dtype=float)
+    a = np.angle(z_enu) - np.angle(z_lf)
+    a = np.mod(a, 2.0 * np.pi)
+    return np.where(np.abs(z_enu) > 1e-9, a, np.nan)
+
+
+def _across(e_m: F64, n_m: F64, azimuth_rad: F64) -> F64:
+    return -e_m * np.cos(azimuth_rad) + n_m * np.sin(azimuth_rad)
+
+
+def _along(e_m: F64, n_m: F64, azimuth_rad: F64) -> F64:
+    return e_m * np.sin(azimuth_rad) + n_m * np.cos(azimuth_rad)
+
+
+def _time_key(t_s: ArrayLike) -> NDArray[np.int64]:
+    """SUMO's clock carries float rounding: join tables on whole milliseconds."""
+    return np.round(np.asarray(t_s, dtype=float) * 1000.0).astype(np.int64)
+
+
+def attach_truth(epochs: pd.DataFrame, truth: pd.DataFrame) -> pd.DataFrame:
+    """Add ``lead_azimuth_rad``, ``edge``, ``lead_edge`` to epoch rows from ``truth.parquet``.
+
+    The lead of a row is the truth vehicle flagged ``is_lead`` in the row's cluster at the
+    same time (``lead`` column if the epochs have one).
+    """
+    tr = truth.copy()
+    tr["_tk"] = _time_key(tr["t_s"])
+    out = epochs.copy()
+    out["_tk"] = _time_key(out["t_s"])
+    veh = tr[["_tk", "vehicle", "edge"]]
+    out = out.drop(columns=[c for c in ("edge", "lead_edge", "lead_azimuth_rad") if c in out], errors="ignore")
+    out = out.merge(veh, on=["_tk", "vehicle"], how="left")
+    leads = tr[tr["is_lead"].astype(bool)][["_tk", "cluster", "edge", "azimuth_rad"]].rename(
+        columns={"edge": "lead_edge", "azimuth_rad": "lead_azimuth_rad"})
+    if "cluster" in out:
+        out = out.merge(leads, on=["_tk", "cluster"], how="left")
+    else:
+        out = out.merge(leads.drop(columns="cluster").drop_duplicates("_tk"), on="_tk", how="left")
+    return out.drop(columns="_tk")
+
+
+def _fill_azimuth(df: pd.DataFrame, az: F64) -> F64:
+    """Fill azimuths the error rotation cannot give (zero error) from the same epoch's other rows
+    (one lead, one azimuth per time and cluster), then from the nearest earlier (else later) epoch."""
+    cl = df["cluster"].astype(str).to_numpy() if "cluster" in df else np.zeros(len(df), dtype=str)
+    tab = pd.DataFrame({"c": cl, "k": _time_key(df["t_s"]), "az": az})
+    per_t = tab.groupby(["c", "k"], sort=True)["az"].first()  # first non-NaN per epoch
+    per_t = per_t.groupby(level="c").transform(lambda x: x.ffill().bfill())
+    return per_t.reindex(pd.MultiIndex.from_arrays([tab["c"], tab["k"]])).to_numpy(float)
+
+
+def lane_quantities(epochs: pd.DataFrame, truth: pd.DataFrame | None = None) -> pd.DataFrame:
+    """Per-row lane-level quantities (adds columns; rows and order kept).
+
+    Added: ``lead_azimuth_rad`` (if missing), ``true_across_m``, ``est_across_m``,
+    ``true_along_m``, ``est_along_m``, ``same_edge``, ``rel_lane_true``, ``rel_lane_geom``,
+    ``rel_lane_est``.
+    """
+    df = epochs.reset_index(drop=True)
+    if truth is not None:
+        df = attach_truth(df, truth)
+    if "lead_azimuth_rad" not in df:
+        df = df.copy()
+        az = lead_azimuth_from_errors(
+            df["est_e_m"] - df["true_e_m"], df["est_n_m"] - df["true_n_m"], df["along_err_m"], df["across_err_m"])
+        df["lead_azimuth_rad"] = _fill_azimuth(df, az)
+    az = df["lead_azimuth_rad"].to_numpy(float)
+    te, tn = df["true_e_m"].to_numpy(float), df["true_n_m"].to_numpy(float)
+    ee, en = df["est_e_m"].to_numpy(float), df["est_n_m"].to_numpy(float)
+    w = df["lane_width_m"].to_numpy(float)
+    out = df.copy()
+    out["true_across_m"] = _across(te, tn, az)
+    out["est_across_m"] = _across(ee, en, az)
+    out["true_along_m"] = _along(te, tn, az)
+    out["est_along_m"] = _along(ee, en, az)
+    if "edge" in df and "lead_edge" in df:
+        edge = df["edge"].astype(str)
+        same = (edge == df["lead_edge"].astype(str)) & ~edge.str.startswith(":") & df["edge"].notna()
+        same &= df["true_lane_index"].notna() & df["lead_lane_index"].notna()
+    else:
+        same = pd.Series(False, index=df.index)
+    out["same_edge"] = same.to_numpy(bool)
+    geom = round_half_away(out["true_across_m"].to_numpy() / w)
+    idx_diff = df["true_lane_index"].to_numpy(float) - df["lead_lane_index"].to_numpy(float) if (
+        "true_lane_index" in df and "lead_lane_index" in df) else np.full(len(df), np.nan)
+    out["rel_lane_geom"] = geom
+    out["rel_lane_true"] = np.where(out["same_edge"].to_numpy(), idx_diff, geom)
+    out["rel_lane_est"] = round_half_away(out["est_across_m"].to_numpy() / w)
+    return out
+
+
+def integrity_counts(err_m: ArrayLike, sigma_m: ArrayLike, available: ArrayLike | None = None, *,
+                     alert_limit_m: float, integrity_risk: float = INTEGRITY_RISK,
+                     k_sigma: float = K_SIGMA) -> dict[str, float]:
+    """Integrity of one axis over a set of epochs.
+
+    ``available`` marks epochs with an estimate (default: all); rates with ``_all`` suffix
+    are over all epochs, the others over the epochs with an estimate.
+    """
+    e = np.abs(np.asarray(err_m, dtype=float))
+    s = np.asarray(sigma_m, dtype=float)
+    ok = np.ones(e.shape, bool) if available is None else np.asarray(available, dtype=bool)
+    ok = ok & np.isfinite(e) & np.isfinite(s)
+    n_all = e.size
+    k_pl = protection_factor(integrity_risk)
+    pl = k_pl * s
+    within = ok & (pl <= alert_limit_m)
+    n_ok = int(ok.sum())
+
+    def rate(mask: NDArray[np.bool_], n: int) -> float:
+        return float(mask.sum() / n) if n else float("nan")
+
+    return {
+        "n": n_ok,
+        "mi_rate_ksigma": rate(ok & (e > k_sigma * s), n_ok),
+        "mi_rate_pl": rate(ok & (e > pl), n_ok),
+        "pl_mean_m": float(np.mean(pl[ok])) if n_ok else float("nan"),
+        "pl_p95_m": float(np.percentile(pl[ok], 95.0)) if n_ok else float("nan"),
+        "availability": rate(within, n_all),
+        "hmi_rate": rate(within & (e > alert_limit_m), n_all),
+        "k_pl": k_pl,
+    }
+
+
+def _pct(a: F64, p: float) -> float:
+    return float(np.percentile(a, p)) if a.size else float("nan")
+
+
+def lane_level_table(epochs: pd.DataFrame, truth: pd.DataFrame | None = None, *,
+                     across_alert_limit_m: float = ACROSS_ALERT_LIMIT_M,
+                     along_alert_limit_m: float = ALONG_ALERT_LIMIT_M,
+                     integrity_risk: float = INTEGRITY_RISK, k_sigma: float = K_SIGMA) -> pd.DataFrame:
+    """Lane-level table, one row per (solution, vehicle), in order of first appearance.
+
+    Columns: ``epochs``, ``initialized`` (fraction), ``same_edge`` (fraction of initialized
+    epochs on the lead's edge), ``lane_model_ok`` (geometric = true relative lane),
+    ``correct_lane`` (estimated = true relative lane), ``correct_lane_geom`` (estimated =
+    geometric), ``wrong_lane_by_2plus``; where-in-lane ``across_abs_p50/p95/p99_m`` (|across
+    error|) and ``along_abs_p95_m``; integrity per axis (``across_``/``along_`` prefixes): the
+    k-sigma and PL misleading-information rates, mean PL, availability at the alert limit
+    and HMI rate (see the module docstring). Fractions of initialized epochs unless noted.
+    """
+    q = lane_quantities(epochs, truth)
+    rows = []
+    for (sol, veh), g in q.groupby(["solution", "vehicle"], sort=False):
+        init = g["initialized"].to_numpy(bool)
+        ok = g[init]
+        n = len(ok)
+
+        def frac(mask: pd.Series | NDArray, _n: int = n) -> float:
+            return float(np.sum(mask) / _n) if _n else float("nan")
+
+        across = np.abs(ok["across_err_m"].to_numpy(float))
+        along = np.abs(ok["along_err_m"].to_numpy(float))
+        row = {
+            "solution": sol, "vehicle": veh, "epochs": int(len(g)), "initialized": float(init.mean()) if len(g) else float("nan"),
+            "same_edge": frac(ok["same_edge"]),
+            "lane_model_ok": frac(ok["rel_lane_geom"] == ok["rel_lane_true"]),
+            "correct_lane": frac(ok["rel_lane_est"] == ok["rel_lane_true"]),
+            "correct_lane_geom": frac(ok["rel_lane_est"] == ok["rel_lane_geom"]),
+            "wrong_lane_by_2plus": frac(np.abs(ok["rel_lane_est"] - ok["rel_lane_true"]) >= 2),
+            "across_abs_p50_m": _pct(across, 50.0), "across_abs_p95_m": _pct(across, 95.0),
+            "across_abs_p99_m": _pct(across, 99.0), "along_abs_p95_m": _pct(along, 95.0),
+        }
+        for axis, limit in (("across", across_alert_limit_m), ("along", along_alert_limit_m)):
+            ic = integrity_counts(g[f"{axis}_err_m"], g[f"sigma_{axis}_m"], init, alert_limit_m=limit,
+                                  integrity_risk=integrity_risk, k_sigma=k_sigma)
+            row[f"{axis}_mi_rate_{k_sigma:g}sigma"] = ic["mi_rate_ksigma"]
+            row[f"{axis}_mi_rate_pl"] = ic["mi_rate_pl"]
+            row[f"{axis}_pl_mean_m"] = ic["pl_mean_m"]
+            row[f"{axis}_availability"] = ic["availability"]
+            row[f"{axis}_hmi_rate"] = ic["hmi_rate"]
+        rows.append(row)
+    out = pd.DataFrame(rows)
+    out.attrs.update({"across_alert_limit_m": across_alert_limit_m, "along_alert_limit_m": along_alert_limit_m,
+                      "integrity_risk": integrity_risk, "k_pl": protection_factor(integrity_risk), "k_sigma": k_sigma})
+    return out
