@@ -175,18 +175,17 @@ def run_scenario(
             step = sim.snapshot()
             steps.append(step)
             truth.extend(_truth_rows(step))
+            events_log.extend(_event_rows(step))
             vehicles = sim.cluster_vehicle_ids()
             lanes, lane_widths = sim.lane_geometry()
             with _progress(n_steps, quiet, f"SUMO {scenario.name}") as bar:
                 for _ in range(n_steps):
                     step = sim.step()
+                    events_log.extend(_event_rows(step))
                     if not step.vehicles:
                         break  # every cluster vehicle has arrived
                     steps.append(step)
                     truth.extend(_truth_rows(step))
-                    events_log.extend(
-                        {"t_s": e.t_s, "kind": e.kind.value, "vehicle": e.vehicle_id, "detail": e.detail} for e in step.events
-                    )
                     bar.update(1)
             stats = sim.stats
         truth.close()
@@ -302,9 +301,13 @@ def run_scenario(
 
         # 6. metrics and outputs -------------------------------------------------------
         t0 = time.perf_counter()
+        lane_records: list[dict[str, Any]] = []
         if len(epochs):
             atomic_write_parquet(tmp / "epochs.parquet", epochs)
             sol_stats = solution_statistics(epochs, updates)
+            from v2v.metrics.lane import lane_level_table
+
+            lane_records = lane_level_table(epochs, pd.read_parquet(tmp / "truth.parquet")).to_dict("records")
         else:
             sol_stats = {}
         timing["metrics_io"] = time.perf_counter() - t0
@@ -340,12 +343,17 @@ def run_scenario(
             "events": events_log[:1000],
             "truth_rows": truth.rows_written,
             "statistics": sol_stats,
+            "lane_level": lane_records,
         }
         if t_end + 1e-9 < scenario.duration_s - scenario.step_length_s:
             summary["note"] = f"all cluster vehicles reached the end of the route at t = {t_end:.1f} s"
         summary["table"] = paper_table(sol_stats) if sol_stats else ""
         atomic_write_json(tmp / "summary.json", json_safe(summary))
     return RunResult(out_dir=Path(out_dir), summary=summary)
+
+
+def _event_rows(step: TrafficStep) -> list[dict[str, Any]]:
+    return [{"t_s": e.t_s, "kind": e.kind.value, "vehicle": e.vehicle_id, "detail": e.detail} for e in step.events]
 
 
 def _uwb_pairs(scenario: Scenario, members: list[str]) -> list[tuple[str, str]]:

@@ -10,6 +10,12 @@ is not thread-safe), builds the clusters, steps SUMO and returns typed
 * ``vehicle.getAngle`` is **degrees clockwise from the net's +y axis** (grid north). The
   true azimuth adds the projection's grid convergence (zero on a tangent projection's
   central meridian, up to ~1.5 deg in a UTM zone).
+* ``vehicle.getSpeed`` is the front bumper's speed along its lane *at* the step (SUMO
+  moves it by the mean of the old and new speed). The antenna velocity is the rigid-body
+  ``v_front + omega x r``: lane tangent times speed, plus SUMO's lateral speed during a lane
+  change (SUMO slides the whole car sideways while its heading, a smoothed rear-to-front
+  chord, lags), plus the lever arm swinging with the azimuth rate. Net-XY vectors go to ENU
+  through the projection's local Jacobian (convergence and scale at each vehicle).
 * libsumo raises ``libsumo.TraCIException`` (which does not pickle); errors that are the
   user's fault become :class:`~v2v.errors.UserError` here, the rest become events.
 
@@ -23,7 +29,7 @@ from __future__ import annotations
 
 import math
 import os
-from dataclasses import dataclass, field
+from dataclasses import dataclass, field, replace
 from pathlib import Path
 from typing import TYPE_CHECKING
 
@@ -59,6 +65,7 @@ class _VehicleMeta:
     lead_id: str
     max_separation_m: float
     prev_azimuth_rad: float | None = None
+    prev_t_s: float | None = None
     in_cluster: bool = True
     lane_index: int | None = None
 
@@ -106,6 +113,7 @@ class SumoSimulation:
         self._bg_next_s = math.inf
         self._pending_events: list[TrafficEvent] = []
         self._traci = None
+        self._lanes: dict[str, tuple[np.ndarray, np.ndarray, float]] = {}
 
     # ------------------------------------------------------------------ lifecycle
     def __enter__(self) -> SumoSimulation:
@@ -261,6 +269,7 @@ class SumoSimulation:
             tc.simulationStep()
             now = tc.simulation.getTime()
             self._spawn_background(now)
+            self._record_sumo_events(now)  # SUMO time; shifted to t_s (< 0) below
             for vid in tc.simulation.getDepartedIDList():
                 waiting.discard(vid)
             if now > limit_s:
@@ -271,11 +280,14 @@ class SumoSimulation:
                 )
         self._t0_sumo_s = tc.simulation.getTime()
         self.stats.warmup_s = self._t0_sumo_s
+        self._pending_events = [replace(e, t_s=round(e.t_s - self._t0_sumo_s, 6)) for e in self._pending_events]
 
     # ------------------------------------------------------------------ stepping
     @property
     def t_s(self) -> float:
-        return self._traci.simulation.getTime() - self._t0_sumo_s
+        # SUMO's clock is integer milliseconds; round off the float noise of the difference
+        # (38.1 - 3.6 = 34.49999999999999) so t_s values are exact step multiples to 1 us.
+        return round(self._traci.simulation.getTime() - self._t0_sumo_s, 6)
 
     def snapshot(self) -> TrafficStep:
         """The current truth (after the last step)."""
@@ -291,7 +303,6 @@ class SumoSimulation:
         xy = np.array([tc.vehicle.getPosition(v) for v in ids])
         z = np.array([tc.vehicle.getPosition3D(v)[2] for v in ids])
         grid_az = np.radians([tc.vehicle.getAngle(v) for v in ids])
-        conv = self.georef.grid_convergence_rad(float(xy[0, 0]), float(xy[0, 1]))
         fwd = np.stack([np.sin(grid_az), np.cos(grid_az)], axis=1)
         left = np.stack([-np.cos(grid_az), np.sin(grid_az)], axis=1)
         arms = np.array([self._meta[v].lever_arm_m for v in ids])
@@ -300,16 +311,21 @@ class SumoSimulation:
         lat, lon = self.georef.xy_to_geodetic(ant_xy[:, 0], ant_xy[:, 1])
         h = ant_z + self.scenario.network.origin_h_m
         ecef = geodetic_to_ecef(lat, lon, h)
+        jac = self._grid_to_enu(ant_xy, h, ecef, lat, lon)  # (n, 3, 2): net-XY vector -> ENU
+        fwd_enu = np.einsum("nij,nj->ni", jac, fwd)
+        # True azimuth of the body axis: the grid angle plus the projection's convergence at
+        # the vehicle's own position.
+        azimuths = np.arctan2(fwd_enu[:, 0], fwd_enu[:, 1]) % (2 * math.pi)
         for k, vid in enumerate(ids):
             m = self._meta[vid]
-            az = float((grid_az[k] + conv) % (2 * math.pi))
+            az = float(azimuths[k])
+            continuing = m.prev_t_s is not None and abs(t - m.prev_t_s - self.dt_s) < 1e-6
+            yaw_rate = float(wrap_angle(az - m.prev_azimuth_rad)) / self.dt_s if continuing else 0.0
+            m.prev_azimuth_rad, m.prev_t_s = az, t
             speed = tc.vehicle.getSpeed(vid)
             slope = math.radians(tc.vehicle.getSlope(vid))
-            v_h = speed * math.cos(slope)
-            vel = np.array([v_h * math.sin(az), v_h * math.cos(az), speed * math.sin(slope)])
-            yaw_rate = 0.0 if m.prev_azimuth_rad is None else float(wrap_angle(az - m.prev_azimuth_rad)) / self.dt_s
-            m.prev_azimuth_rad = az
             lane_id = tc.vehicle.getLaneID(vid)
+            vel = self._antenna_velocity_enu(vid, lane_id, speed, slope, yaw_rate, ant_xy[k] - xy[k], jac[k])
             lane_index = tc.vehicle.getLaneIndex(vid)
             if m.lane_index is not None and lane_index != m.lane_index and not lane_id.startswith(":"):
                 events.append(TrafficEvent(t_s=t, kind=EventKind.LANE_CHANGE, vehicle_id=vid, detail=f"{m.lane_index}->{lane_index}"))
@@ -355,6 +371,77 @@ class SumoSimulation:
             m.in_cluster = inside
         return TrafficStep(t_s=t, vehicles=states, events=tuple(events), background=self._background_boxes(present))
 
+    def _grid_to_enu(self, xy: np.ndarray, h: np.ndarray, ecef: np.ndarray, lat: np.ndarray, lon: np.ndarray) -> np.ndarray:
+        """Jacobian (n, 3, 2) of net XY -> local ENU at each point, by 1 m probes through the projection.
+
+        Carries the grid convergence (rotation) and the projection's scale factor, so a
+        net-XY vector maps to the true ENU vector (``azimuth = atan2(E, N)``); its
+        linearization error over 1 m is ~1e-7 (Earth curvature).
+        """
+        sl, cl, so, co = np.sin(lat), np.cos(lat), np.sin(lon), np.cos(lon)
+        zero = np.zeros_like(lat)
+        rot = np.stack([
+            np.stack([-so, co, zero], axis=-1),
+            np.stack([-sl * co, -sl * so, cl], axis=-1),
+            np.stack([cl * co, cl * so, sl], axis=-1),
+        ], axis=1)  # fmt: skip
+        jac = np.empty((len(xy), 3, 2))
+        for j, (dx, dy) in enumerate(((1.0, 0.0), (0.0, 1.0))):
+            la, lo = self.georef.xy_to_geodetic(xy[:, 0] + dx, xy[:, 1] + dy)
+            jac[:, :, j] = np.einsum("nij,nj->ni", rot, geodetic_to_ecef(la, lo, h) - ecef)
+        return jac
+
+    def _lane_tangent(self, lane_id: str, lane_pos_m: float) -> tuple[np.ndarray, float] | None:
+        """Unit tangent (net XY) of a lane's centre-line at a lane position, and the lane's
+        geometry factor (shape length / SUMO lane length: SUMO moves a vehicle by
+        ``speed * dt`` lane metres, i.e. ``factor * speed * dt`` along the drawn shape)."""
+        if not lane_id:
+            return None
+        lane = self._lanes.get(lane_id)
+        if lane is None:
+            shape = np.asarray(self._traci.lane.getShape(lane_id), dtype=float)[:, :2]
+            seg = np.diff(shape, axis=0)
+            seg_len = np.linalg.norm(seg, axis=1)
+            keep = seg_len > 1e-9
+            if not keep.any():
+                return None
+            seg, seg_len = seg[keep], seg_len[keep]
+            length = float(self._traci.lane.getLength(lane_id))
+            factor = float(seg_len.sum()) / length if length > 0 else 1.0
+            lane = self._lanes[lane_id] = (seg / seg_len[:, None], np.cumsum(seg_len), factor)
+        unit, cum, factor = lane
+        i = min(int(np.searchsorted(cum, lane_pos_m * factor, side="right")), len(cum) - 1)
+        return unit[i], factor
+
+    def _antenna_velocity_enu(self, vid: str, lane_id: str, speed: float, slope: float, yaw_rate: float,
+                              arm_xy: np.ndarray, jac: np.ndarray) -> np.ndarray:
+        """True ENU velocity of the antenna (m/s), consistent with the antenna track.
+
+        Rigid body: ``v_ant = v_front + omega x r`` with ``r = antenna - front bumper``.
+        The front bumper runs along its lane's centre-line (tangent at its lane position,
+        times the lane's geometry factor) plus, during a lane change, SUMO's lateral speed
+        along the lane's left normal (SUMO translates the whole vehicle sideways: its
+        heading is a smoothed chord and does *not* point along that motion). ``omega`` is
+        the azimuth rate (clockwise). SUMO integrates speed trapezoidally within a step, so
+        ``getSpeed`` is the speed *at* the step, not its mean.
+        """
+        tc = self._traci
+        tan = self._lane_tangent(lane_id, tc.vehicle.getLanePosition(vid))
+        if tan is None:
+            a = math.radians(tc.vehicle.getAngle(vid))
+            tangent, factor = np.array([math.sin(a), math.cos(a)]), 1.0
+        else:
+            tangent, factor = tan
+        normal = np.array([-tangent[1], tangent[0]])  # left of the lane direction
+        v_grid = (
+            speed * math.cos(slope) * factor * tangent
+            + tc.vehicle.getLateralSpeed(vid) * normal
+            + yaw_rate * np.array([arm_xy[1], -arm_xy[0]])
+        )
+        vel = jac @ v_grid
+        vel[2] += speed * math.sin(slope)
+        return vel
+
     def _background_boxes(self, present: set[str]) -> np.ndarray:
         tc = self._traci
         rows = []
@@ -369,13 +456,9 @@ class SumoSimulation:
         rows.sort()
         return np.array(rows, dtype=float).reshape(-1, 6)
 
-    def step(self) -> TrafficStep:
-        """Advance SUMO by one step and return the truth snapshot."""
+    def _record_sumo_events(self, t: float) -> None:
+        """Teleports, collisions and arrivals of cluster vehicles in the last SUMO step."""
         tc = self._traci
-        tc.simulationStep()
-        now = tc.simulation.getTime()
-        self._spawn_background(now)
-        t = now - self._t0_sumo_s
         for vid in tc.simulation.getStartingTeleportIDList():
             if vid in self._meta:
                 self.stats.teleports += 1
@@ -388,6 +471,14 @@ class SumoSimulation:
             if vid in self._meta:
                 self.stats.arrived.append(vid)
                 self._pending_events.append(TrafficEvent(t_s=t, kind=EventKind.ARRIVED, vehicle_id=vid, detail="reached the end of its route"))
+
+    def step(self) -> TrafficStep:
+        """Advance SUMO by one step and return the truth snapshot."""
+        tc = self._traci
+        tc.simulationStep()
+        now = tc.simulation.getTime()
+        self._spawn_background(now)
+        self._record_sumo_events(self.t_s)
         return self.snapshot()
 
     def cluster_vehicle_ids(self) -> list[str]:
