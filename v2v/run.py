@@ -200,6 +200,8 @@ def run_scenario(
 
         # 3. sensors ------------------------------------------------------------------
         used = {s for sol in scenario.solutions for s in sol.sensors}
+        if save_measurements:  # a user saving measurements wants every enabled sensor's
+            used |= {name for name in ("uwb", "bearing") if getattr(scenario.sensors, name).enabled}
         t0 = time.perf_counter()
         _say(quiet, f"synthesizing measurements for {len(vehicles)} vehicles over {t_end:.1f} s ...")
         gnss = build_gnss(scenario, gps_start, seeds[STREAM_GNSS], occlusion, net.georef, base_dir)

@@ -6,7 +6,8 @@ One :class:`OcclusionGeometry` is built per world (buildings + foliage from
 * :meth:`OcclusionGeometry.sky`: for an antenna and a set of satellite directions,
   which rays a building blocks, how much canopy each ray crosses, and the excess path
   of the shortest wall echo for the blocked ones (the echo-only NLOS signal of
-  MacGougan (2009) section 3.5.1, fig. 3.3);
+  MacGougan (2009) section 3.5.1, fig. 3.3); :meth:`OcclusionGeometry.sky_many` answers it
+  for the rays of many antennas in one vectorized call (a GNSS epoch of a whole cluster);
 * :meth:`OcclusionGeometry.links`: for vehicle-to-vehicle segments, whether a building
   or a vehicle body blocks them, where, and the excess path of the shortest single-bounce
   wall reflection (the "first detectable reflection" a UWB radio measures under NLOS,
@@ -385,23 +386,62 @@ class OcclusionGeometry:
             the building is taller than ``z_a + d tan(el)``; ``echo_excess_m`` the smallest
             ``2 d_w cos(el) cos(az - az_n)`` over valid wall echoes (see module docstring).
         """
-        xa = np.asarray(antenna_xyz_m, dtype=float).reshape(3)
+        xa = np.asarray(antenna_xyz_m, dtype=float).reshape(1, 3)
         az = np.atleast_1d(np.asarray(azimuth_grid_rad, dtype=float))
         el = np.atleast_1d(np.asarray(elevation_rad, dtype=float))
         az, el = np.broadcast_arrays(az, el)
+        return self.sky_many(xa, np.zeros(az.size, dtype=np.int64), az, el, max_dist_m)
+
+    def sky_many(
+        self,
+        antennas_xyz_m: ArrayLike,
+        antenna_index: ArrayLike,
+        azimuth_grid_rad: ArrayLike,
+        elevation_rad: ArrayLike,
+        max_dist_m: float = 500.0,
+    ) -> SkyResult:
+        """:meth:`sky` for the rays of several antennas at once (one call per GNSS epoch).
+
+        Parameters
+        ----------
+        antennas_xyz_m : (m, 3)
+            Antennas in net XY metres and height above ground.
+        antenna_index : (n,) int
+            Row of ``antennas_xyz_m`` each ray starts from.
+        azimuth_grid_rad, elevation_rad : (n,)
+            Ray directions (grid azimuth clockwise from +y, elevation), radians.
+        max_dist_m : float
+            Horizontal distance beyond which nothing is tested.
+
+        Returns
+        -------
+        SkyResult
+            Per ray, exactly what :meth:`sky` gives for that ray from its antenna.
+        """
+        ants = np.asarray(antennas_xyz_m, dtype=float).reshape(-1, 3)
+        ai = np.atleast_1d(np.asarray(antenna_index, dtype=np.int64))
+        az = np.atleast_1d(np.asarray(azimuth_grid_rad, dtype=float))
+        el = np.atleast_1d(np.asarray(elevation_rad, dtype=float))
+        if not (ai.shape == az.shape == el.shape) or ai.ndim != 1:
+            raise ValueError(f"antenna_index, azimuth and elevation must be (n,), got {ai.shape}, {az.shape}, {el.shape}")
         n = az.size
+        xa = ants[ai] if n else np.zeros((0, 3))
         el_c = np.clip(el, -np.pi / 2 + 1e-9, np.pi / 2 - 1e-9)
         u = np.column_stack([np.sin(az), np.cos(az)])
         tan_el = np.tan(el_c)
         cos_el = np.cos(el_c)
-        p0 = np.broadcast_to(xa, (n, 3))
-        p1 = np.column_stack([xa[:2] + max_dist_m * u, xa[2] + max_dist_m * tan_el])
+        p1 = np.column_stack([xa[:, :2] + max_dist_m * u, xa[:, 2] + max_dist_m * tan_el])
 
-        t_hit, b_hit = self._building_hits(p0, p1)
+        t_hit, b_hit = self._building_hits(xa, p1)
         blocked = np.isfinite(t_hit)
         blocker_id = np.where(blocked, self._b_ids[np.maximum(b_hit, 0)] if self._b_ids.size else "", "")
 
-        path_h, loss_h = self._foliage_horizontal(xa, u, tan_el, max_dist_m)
+        path_h = np.zeros(n)
+        loss_h = np.zeros(n)
+        if self._f_h.size:
+            for a in np.unique(ai):
+                sel = np.flatnonzero(ai == a)
+                path_h[sel], loss_h[sel] = self._foliage_horizontal(ants[a], u[sel], tan_el[sel], max_dist_m)
         foliage_path_m = path_h / cos_el
         foliage_loss_db = loss_h / cos_el
 
@@ -469,41 +509,39 @@ class OcclusionGeometry:
     def _sky_echo(
         self, xa: FloatArray, az: FloatArray, el: FloatArray, blocked: NDArray[np.bool_], max_dist_m: float
     ) -> FloatArray:
+        """Shortest valid wall-echo excess of each blocked ray; ``xa`` (n, 3) is each ray's antenna."""
         n = az.size
         rays = np.flatnonzero(blocked)
         ce, se = np.cos(el[rays]), np.sin(el[rays])
         tan_el = se / ce
+        xr = xa[rays]
         # The reflection point is at horizontal distance tau cos(el) >= d_w from the antenna
         # and height z_a + tau sin(el) < h_w: only walls within (h_max - z_a) / tan(el).
-        radius = min(max_dist_m, float(np.max((self._h_max - xa[2]) / np.maximum(tan_el, 1e-12))))
-        # Square window (cheap superset of the disc); the tests below are exact.
-        window = shapely.box(xa[0] - radius, xa[1] - radius, xa[0] + radius, xa[1] + radius)
-        wi = np.asarray(self._wall_tree.query(window), dtype=np.int64)
-        delta = np.einsum("ij,ij->i", xa[:2] - self._wa[wi], self._w_n[wi])
-        keep = (delta > 0.0) & (self._w_h[wi] > xa[2])
-        wi, delta = wi[keep], delta[keep]
-        if wi.size == 0 or rays.size == 0:
+        radius = np.minimum(max_dist_m, (self._h_max - xr[:, 2]) / np.maximum(tan_el, 1e-12))
+        # Square windows (cheap supersets of the discs); the tests below are exact.
+        windows = shapely.box(xr[:, 0] - radius, xr[:, 1] - radius, xr[:, 0] + radius, xr[:, 1] + radius)
+        ri, wi = _query_pairs(self._wall_tree, windows)
+        delta = np.einsum("ij,ij->i", xr[ri, :2] - self._wa[wi], self._w_n[wi])
+        keep = (delta > 0.0) & (self._w_h[wi] > xr[ri, 2])
+        ri, wi, delta = ri[keep], wi[keep], delta[keep]
+        if wi.size == 0:
             return np.full(n, np.nan)
         s_h = np.column_stack([ce * np.sin(az[rays]), ce * np.cos(az[rays])])  # (r, 2)
-        nrm = self._w_n[wi]  # (w, 2)
-        c = s_h @ nrm.T  # (r, w): s . n
+        c = np.einsum("ij,ij->i", s_h[ri], self._w_n[wi])  # s . n
         # Necessary for z_R < h_w: d_w tan(el) <= tau cos(el) tan(el) = z_R - z_a < h_w - z_a.
-        reach = delta[None, :] * tan_el[:, None] < (self._w_h[wi] - xa[2])[None, :]
-        ri, wj = np.nonzero((c > 0.0) & reach)
-        c = c[ri, wj]
-        dw = delta[wj]
+        ok = (c > 0.0) & (delta * tan_el[ri] < self._w_h[wi] - xr[ri, 2])
+        ri, wi, c, dw = ri[ok], wi[ok], c[ok], delta[ok]
         tau = dw / c
-        w = wi[wj]
-        r_h = xa[:2] + tau[:, None] * (s_h[ri] - 2.0 * c[:, None] * self._w_n[w])
-        z_r = xa[2] + tau * se[ri]
-        s_wall = np.einsum("ij,ij->i", r_h - self._wa[w], self._w_dir[w]) / self._w_len[w]
-        ok = (s_wall >= 0.0) & (s_wall <= 1.0) & (z_r < self._w_h[w]) & (tau * ce[ri] <= max_dist_m)
+        r_h = xr[ri, :2] + tau[:, None] * (s_h[ri] - 2.0 * c[:, None] * self._w_n[wi])
+        z_r = xr[ri, 2] + tau * se[ri]
+        s_wall = np.einsum("ij,ij->i", r_h - self._wa[wi], self._w_dir[wi]) / self._w_len[wi]
+        ok = (s_wall >= 0.0) & (s_wall <= 1.0) & (z_r < self._w_h[wi]) & (tau * ce[ri] <= max_dist_m)
         ri, c, dw, r_h, z_r = ri[ok], c[ok], dw[ok], r_h[ok], z_r[ok]
         excess = 2.0 * dw * c
         r3 = np.column_stack([r_h, z_r])
-        a3 = np.broadcast_to(xa, r3.shape)
+        a3 = xr[ri]
         # Incident leg: from R toward the satellite, out to max_dist_m horizontally.
-        te = np.tan(el[rays][ri])
+        te = tan_el[ri]
         far = np.column_stack([r_h + max_dist_m * s_h[ri] / ce[ri][:, None], z_r + max_dist_m * te])
         # _legs_clear(a, r, b) checks a->r and r->b: antenna -> R, then R -> far.
         best = self._best_reflection(ri, excess, a3, r3, far, rays.size)

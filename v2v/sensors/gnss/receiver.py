@@ -301,7 +301,8 @@ class GnssSynthesizer:
     gps_start_s : float
         GPS seconds of scenario time ``t_s = 0``.
     occlusion : OcclusionGeometry | None
-        Buildings/foliage (``sky`` method); None = open sky.
+        Buildings/foliage: :class:`v2v.world.occlusion.OcclusionGeometry` (its batched
+        ``sky_many``), or any object with its per-antenna ``sky`` method; None = open sky.
     georef : GeoReference | None
         Needed with ``occlusion``: converts true azimuths to grid azimuths
         (``az_grid = az - grid_convergence``; the convergence is evaluated once at the first
@@ -423,6 +424,17 @@ class GnssSynthesizer:
         k = cand.size
         geoms = self._geometry(t_gps, cand, rx, rots, lat, lon, h) if k else None
 
+        skies: list[Any] = [None] * m
+        if self.occlusion is not None and geoms is not None:
+            az_grid = geoms["az_rad"] - self._convergence_rad
+            if hasattr(self.occlusion, "sky_many"):
+                # One batched query for every (vehicle, candidate) ray of the epoch.
+                res = self.occlusion.sky_many(xyz, np.repeat(np.arange(m), k), az_grid.reshape(-1),
+                                              geoms["el_rad"].reshape(-1))
+                skies = [_SkySlice(res, i * k, (i + 1) * k) for i in range(m)]
+            else:  # any object with the per-antenna ``sky`` method
+                skies = [self.occlusion.sky(xyz[i], az_grid[i], geoms["el_rad"][i]) for i in range(m)]
+
         out: dict[str, GnssEpoch] = {}
         for i, vid in enumerate(ids):
             rcv = self.receivers.get(vid)
@@ -432,10 +444,7 @@ class GnssSynthesizer:
                 g = _empty_geometry()
             else:
                 g = _SatGeometry(**{key: val[i] for key, val in geoms.items()})
-            sky = None
-            if self.occlusion is not None and g.prn.size:
-                sky = self.occlusion.sky(xyz[i], g.az_rad - self._convergence_rad, g.el_rad)
-            out[vid] = rcv.measure(float(t_s), g, vel[i], sky)
+            out[vid] = rcv.measure(float(t_s), g, vel[i], skies[i])
         return out
 
     def _geometry(
@@ -502,6 +511,15 @@ class GnssSynthesizer:
             "iono_m": mk(np.where(ok, iono, 0.0)),
             "tropo_m": mk(np.where(ok, tropo, 0.0)),
         }
+
+
+class _SkySlice:
+    """One receiver's rays of a batched sky result (the attributes ``measure`` reads)."""
+
+    def __init__(self, res: Any, lo: int, hi: int):
+        self.blocked = res.blocked[lo:hi]
+        self.echo_excess_m = res.echo_excess_m[lo:hi]
+        self.foliage_loss_db = res.foliage_loss_db[lo:hi]
 
 
 def _empty_geometry() -> _SatGeometry:
