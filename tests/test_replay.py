@@ -336,9 +336,10 @@ def test_links_and_sky(run):
 
 
 def test_blueprint_is_stored_with_the_views(run):
-    """The blueprint travels in the file, and its along-track view's query, run through
-    rerun's own entity-path-filter engine on the recording, selects exactly the along-track
-    error and sigma series of every (solution, vehicle) pair (escaped names included)."""
+    """The blueprint travels in the file, and each vehicle's along-track view (one tab per
+    vehicle), run through rerun's own entity-path-filter engine on the recording, selects
+    exactly that vehicle's along-track error and sigma series of every solution (escaped
+    names included)."""
     path, _ = run
     reader = RrdReader(path)
     assert len(reader.recordings()) == 1 and len(reader.blueprints()) == 1
@@ -350,13 +351,11 @@ def test_blueprint_is_stored_with_the_views(run):
         if "ViewContents:query" in rb.schema.names:
             queries.append(rb.column("ViewContents:query").to_pylist()[0])
     assert {"3D", "TimeSeries", "2D", "Map"} <= {k.replace("Spatial", "") for k in kinds}, kinds
-    along_query = [q for q in queries if any(line.endswith("/along_sigma") for line in q)]
-    assert len(along_query) == 1
-    selected = {c.entity_path for c in RrdReader(path).stream().filter(content=along_query[0])}
-    expected = {
-        bp.error_path(s, v, k) for s in SOLUTIONS for v in VEHICLES[1:] for k in ("along", "along_sigma")
-    }
-    assert selected == expected
+    along_queries = [q for q in queries if any(line.endswith("/along_sigma") for line in q)]
+    assert len(along_queries) == len(VEHICLES[1:])
+    for v, q in zip(VEHICLES[1:], along_queries, strict=True):
+        selected = {c.entity_path for c in RrdReader(path).stream().filter(content=q)}
+        assert selected == {bp.error_path(s, v, k) for s in SOLUTIONS for k in ("along", "along_sigma")}
 
 
 def test_null_logger_accepts_every_call():

@@ -438,7 +438,7 @@ def _epoch_logger(logger, georef: GeoReference):
             xy.append([lst.xyz_m[0] + e * c - n * s, lst.xyz_m[1] + e * s + n * c])
             cov.append([[r["cov_ee_m2"], r["cov_en_m2"]], [r["cov_en_m2"], r["cov_nn_m2"]]])
             logger.log_errors(t_s, solution, r["vehicle"], r["along_err_m"], r["across_err_m"], r["sigma_along_m"],
-                              r["sigma_across_m"], r["nees_pos"], float("nan"), 0,
+                              r["sigma_across_m"], r["nees_pos"], float("nan"), int(r["used_pr"]),
                               int(r["rejected_pr"] + r["rejected_uwb"] + r["rejected_bearing"] + r["rejected_doppler"]))
         if ids:
             logger.log_estimates(t_s, solution, ids, np.array(xy), np.array(cov))

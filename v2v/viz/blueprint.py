@@ -95,9 +95,42 @@ def error_path(solution: str, vehicle_id: str, series: str) -> str:
     return rr.new_entity_path(["errors", solution, vehicle_id, series])
 
 
-def _series_view(name: str, pairs: Iterable[tuple[str, str]], series: Sequence[str]) -> rrb.TimeSeriesView:
+def _whole_run() -> dict:
+    """Time-series views show the whole run, not rerun's default window around the cursor."""
+    inf = rrb.TimeRangeBoundary.infinite()
+    return dict(
+        time_ranges=rrb.VisibleTimeRange(TIMELINE, start=inf, end=inf),
+        axis_x=rrb.TimeAxis(view_range=rr.TimeRange(start=inf, end=inf)),
+    )
+
+
+def _solution_rgb(i: int) -> tuple[int, int, int]:
+    from v2v.viz.rerun_logger import SOLUTION_RGB
+
+    return tuple(SOLUTION_RGB[i % len(SOLUTION_RGB)])  # type: ignore[return-value]
+
+
+def _error_view(title: str, solutions: Sequence[str], vehicle: str, key: str) -> rrb.TimeSeriesView:
+    """One vehicle's error component for every solution: a solid line per solution named after
+    it, its +-1 sigma bounds faint in the same colour."""
+    contents: list[str] = []
+    overrides: dict = {}
+    for i, s in enumerate(solutions):
+        rgb = _solution_rgb(i)
+        p, ps = error_path(s, vehicle, key), error_path(s, vehicle, key + "_sigma")
+        contents += [f"+ {p}", f"+ {ps}"]
+        overrides[p] = rr.SeriesLines(names=s, colors=rgb, widths=1.5)
+        overrides[ps] = rr.SeriesLines(names=[f"{s} +1σ", f"{s} -1σ"], colors=[(*rgb, 80), (*rgb, 80)], widths=[0.8, 0.8])
+    return rrb.TimeSeriesView(origin="/errors", contents=contents, name=f"{title} — {vehicle}", overrides=overrides,
+                              plot_legend=rrb.PlotLegend(visible=key == "along"), **_whole_run())
+
+
+def _series_view(name: str, pairs: Iterable[tuple[str, str]], series: Sequence[str], solutions: Sequence[str]) -> rrb.TimeSeriesView:
     contents = [f"+ {error_path(s, v, k)}" for s, v in pairs for k in series]
-    return rrb.TimeSeriesView(origin="/errors", contents=contents or ["- /**"], name=name)
+    overrides = {error_path(s, v, k): rr.SeriesLines(names=f"{s} {v}", colors=_solution_rgb(solutions.index(s)))
+                 for s, v in pairs for k in series}
+    return rrb.TimeSeriesView(origin="/errors", contents=contents or ["- /**"], name=name, overrides=overrides,
+                              plot_legend=rrb.PlotLegend(visible=False), **_whole_run())
 
 
 def default_blueprint(
@@ -108,6 +141,11 @@ def default_blueprint(
     show_map: bool = True,
 ) -> rrb.Blueprint:
     """The default layout of a replay (see the module docstring).
+
+    Left: the 3-D world, the camera following the cluster. Right, top to bottom: along-track
+    and across-track error with +-1 sigma (one tab per vehicle, one colour per solution, the
+    whole run on the time axis), position NEES, satellites used / rejections, and the sky
+    plots (one tab per vehicle) beside the map. Side panels start collapsed.
 
     Parameters
     ----------
@@ -121,13 +159,16 @@ def default_blueprint(
         Add the MapView of ``map/**`` (needs map tiles from the network when *viewed*;
         nothing is fetched when the file is written).
     """
+    solutions = list(solutions)
     pairs = [(s, v) for s in solutions for v in vehicle_ids]
-    right: list[rrb.Container | rrb.View] = [
-        _series_view("Along-track error ±1σ [m]", pairs, ("along", "along_sigma")),
-        _series_view("Across-track error ±1σ [m]", pairs, ("across", "across_sigma")),
-        _series_view("NEES / NIS", pairs, ("nees", "nis")),
-        _series_view("Satellites used / rejections", pairs, ("n_sats", "rejections")),
-    ]
+    right: list[rrb.Container | rrb.View] = []
+    if vehicle_ids:
+        right.append(rrb.Tabs(*[_error_view("Along-track error ±1σ [m]", solutions, v, "along") for v in vehicle_ids]))
+        right.append(rrb.Tabs(*[_error_view("Across-track error ±1σ [m]", solutions, v, "across") for v in vehicle_ids]))
+    else:
+        right.append(_series_view("Along-track error ±1σ [m]", pairs, ("along", "along_sigma"), solutions))
+    right.append(_series_view("NEES (position, 3 dof)", pairs, ("nees",), solutions))
+    right.append(_series_view("Satellites used / rejections", pairs, ("n_sats", "rejections"), solutions))
     bottom: list[rrb.Container | rrb.View] = []
     if sky_vehicle_ids:
         skies = [rrb.Spatial2DView(origin=sky_path(v), name=f"Sky {v}") for v in sky_vehicle_ids]
@@ -136,8 +177,10 @@ def default_blueprint(
         bottom.append(rrb.MapView(origin=MAP, name="Map (truth)"))
     if bottom:
         right.append(rrb.Horizontal(*bottom))
-    world = rrb.Spatial3DView(origin=WORLD, name="World (net XY)")
+    world = rrb.Spatial3DView(origin=WORLD, name="World (net XY)", eye_controls=rrb.EyeControls3D(tracking_entity=TRUTH))
     return rrb.Blueprint(
         rrb.Horizontal(world, rrb.Vertical(*right), column_shares=[3.0, 2.0]),
-        collapse_panels=False,
+        rrb.SelectionPanel(state="collapsed"),
+        rrb.BlueprintPanel(state="collapsed"),
+        rrb.TimePanel(state="collapsed", timeline=TIMELINE),
     )
