@@ -121,8 +121,10 @@ def _error_view(title: str, solutions: Sequence[str], vehicle: str, key: str) ->
         contents += [f"+ {p}", f"+ {ps}"]
         overrides[p] = rr.SeriesLines(names=s, colors=rgb, widths=1.5)
         overrides[ps] = rr.SeriesLines(names=[f"{s} +1σ", f"{s} -1σ"], colors=[(*rgb, 80), (*rgb, 80)], widths=[0.8, 0.8])
+    # +-2 m: lane-level scale; the metres-wide sigma of the first epochs would squash the plot
     return rrb.TimeSeriesView(origin="/errors", contents=contents, name=f"{title} — {vehicle}", overrides=overrides,
-                              plot_legend=rrb.PlotLegend(visible=key == "along"), **_whole_run())
+                              plot_legend=rrb.PlotLegend(visible=key == "along"),
+                              axis_y=rrb.ScalarAxis(range=(-2.0, 2.0)), **_whole_run())
 
 
 def _series_view(name: str, pairs: Iterable[tuple[str, str]], series: Sequence[str], solutions: Sequence[str]) -> rrb.TimeSeriesView:
