@@ -31,7 +31,7 @@ import math
 import os
 from dataclasses import dataclass, field, replace
 from pathlib import Path
-from typing import TYPE_CHECKING
+from typing import TYPE_CHECKING, Any
 
 import numpy as np
 
@@ -112,7 +112,7 @@ class SumoSimulation:
         self._bg_counter = 0
         self._bg_next_s = math.inf
         self._pending_events: list[TrafficEvent] = []
-        self._traci = None
+        self._traci: Any = None
         self._lanes: dict[str, tuple[np.ndarray, np.ndarray, float]] = {}
 
     # ------------------------------------------------------------------ lifecycle
