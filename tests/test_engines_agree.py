@@ -13,6 +13,7 @@ tight for the large ones): |a - b| <= 1e-9 * (|b| + scale of its row and column)
 from __future__ import annotations
 
 import numpy as np
+import pytest
 
 from v2v.estimation.filter import ClusterEkf, FilterConfig
 from v2v.estimation.layout import StateLayout
@@ -20,7 +21,8 @@ from v2v.estimation.reference import ReferenceClusterEkf
 from v2v.estimation.simulate import SimScenario, run_filter, simulate, vehicle_ids
 
 
-def test_engines_agree_multi_vehicle_gnss_uwb_bearing_azimuth_unknown():
+@pytest.mark.parametrize("azimuth_rates", [False, True], ids=["azimuth_random_walk", "azimuth_and_yaw_rate"])
+def test_engines_agree_multi_vehicle_gnss_uwb_bearing_azimuth_unknown(azimuth_rates):
     cfg = FilterConfig(uwb_bias_bounds_m=(-1.23, 1.23), uwb_scale_bounds=(-0.01, 0.01))
     scn = SimScenario(
         n_vehicles=4, duration_s=4.0, turn_rate_rps=0.08, bearing_vehicles=("lead", "v1"),
@@ -29,7 +31,7 @@ def test_engines_agree_multi_vehicle_gnss_uwb_bearing_azimuth_unknown():
     )
     ids = vehicle_ids(4)
     lay = StateLayout.build(lead="lead", vehicles=ids[1:], azimuth_vehicles=("lead", "v1"),
-                            uwb_pairs=(("lead", "v1"), ("v2", "v3")))
+                            uwb_pairs=(("lead", "v1"), ("v2", "v3")), azimuth_rates=azimuth_rates)
     eps = simulate(scn, cfg, np.random.default_rng(42))
     prod, ref = ClusterEkf(lay, cfg), ReferenceClusterEkf(lay, cfg)
     kinds: set[str] = set()

@@ -11,7 +11,7 @@ from scipy.stats import binom
 from v2v.errors import UserError
 from v2v.estimation.filter import ClusterEkf, FilterConfig, MeasurementNoiseConfig, scalar_update
 from v2v.estimation.layout import StateLayout
-from v2v.estimation.process import ProcessNoiseConfig, transition, vehicle_block
+from v2v.estimation.process import ProcessNoiseConfig, azimuth_block, transition, vehicle_block
 from v2v.estimation.simulate import SimScenario, run_filter, simulate, vehicle_ids
 from v2v.sensors.measurements import UwbRanges
 
@@ -60,6 +60,48 @@ def test_van_loan_matches_closed_form_gauss_markov(dt):
     for idx, *_ in cases:
         mask[np.ix_(idx, idx)] = True
     assert np.all(f[~mask] == 0.0) and np.all(q[~mask] == 0.0)
+
+
+@pytest.mark.parametrize("dt", [0.01, 0.1, 1.0, 7.0])
+def test_azimuth_rate_block_is_integrated_gauss_markov_plus_random_walk(dt):
+    """[azimuth, yaw rate]: the yaw rate is GM (sigma, tau) and the azimuth integrates it plus a
+    random walk q_a, so F and Q are the velocity-axis closed form with q_a dt added to Q_aa."""
+    cfg = ProcessNoiseConfig(azimuth_rw_rad_per_sqrt_s=0.01, yaw_rate_sigma_rps=0.3, yaw_rate_tau_s=3.0)
+    f, q = azimuth_block(cfg, dt)
+    f_ref, q_ref = _gm_closed_form(3.0, 0.3, dt)
+    q_ref[0, 0] += 0.01**2 * dt
+    np.testing.assert_allclose(f, f_ref, rtol=1e-12, atol=1e-12)
+    np.testing.assert_allclose(q, q_ref, rtol=1e-9, atol=0)
+
+
+def test_transition_with_azimuth_rates_couples_only_azimuth_and_its_rate():
+    cfg = ProcessNoiseConfig(azimuth_rw_rad_per_sqrt_s=0.02, yaw_rate_sigma_rps=0.2, yaw_rate_tau_s=2.0)
+    lay = StateLayout.build(lead="L", vehicles=["A"], azimuth_vehicles=["L", "A"], uwb_pairs=[("L", "A")],
+                            azimuth_rates=True)
+    assert lay.n == 8 + 2 * (1 + 1) + 2 and lay.azimuth_rate_vehicles == ("L", "A")
+    f, q = transition(lay, cfg, 0.5)
+    fa, qa = azimuth_block(cfg, 0.5)
+    for v in ("L", "A"):
+        ix = np.ix_([lay.azimuth(v), lay.azimuth_rate(v)], [lay.azimuth(v), lay.azimuth_rate(v)])
+        np.testing.assert_array_equal(f[ix], fa)
+        np.testing.assert_array_equal(q[ix], qa)
+    i, j = lay.azimuth("L"), lay.azimuth_rate("A")
+    assert f[i, j] == 0.0 and q[i, j] == 0.0
+    # the production engine's in-place pair propagation equals F P F^T + Q
+    rng = np.random.default_rng(3)
+    a = rng.standard_normal((lay.n, lay.n))
+    p0 = a @ a.T
+    x0 = rng.standard_normal(lay.n)
+    ekf = ClusterEkf(lay, FilterConfig(process=cfg))
+    ekf._replace(x0, p0)
+    ekf.predict(0.5)
+    np.testing.assert_allclose(ekf.x, f @ x0, rtol=1e-13, atol=1e-13)
+    np.testing.assert_allclose(ekf.P, f @ p0 @ f.T + q, rtol=1e-12, atol=1e-12)
+    # removing a vehicle removes its azimuth-rate block too
+    gone, _ = lay.without_vehicle("A")
+    assert gone.azimuth_rate_vehicles == ("L",) and gone.uwb_pairs == ()
+    with pytest.raises(UserError, match="no azimuth block"):
+        StateLayout(lead="L", blocks=(("az_rate", "L"),))
 
 
 def test_dense_transition_is_block_diagonal_with_random_walks():

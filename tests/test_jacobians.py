@@ -23,7 +23,8 @@ from v2v.frames import geodetic_to_ecef, wrap_angle
 EPS = np.finfo(float).eps
 
 LAYOUT = StateLayout.build(
-    lead="L", vehicles=["A", "B"], azimuth_vehicles=["L", "A"], uwb_pairs=[("L", "A"), ("A", "B")]
+    lead="L", vehicles=["A", "B"], azimuth_vehicles=["L", "A"], uwb_pairs=[("L", "A"), ("A", "B")],
+    azimuth_rates=True,  # the yaw-rate states enter no measurement: their columns must be 0
 )
 BASE = geodetic_to_ecef(np.radians(51.08), np.radians(-114.13), 1100.0)
 GEO = models.GnssGeometry(base_ecef_m=BASE, base_vel_ecef_mps=np.array([3.0, -12.0, 5.0]))
@@ -45,6 +46,8 @@ def _state() -> np.ndarray:
     x[LAYOUT.drift("B")] = 12.0
     x[LAYOUT.azimuth("L")] = np.radians(210.0)
     x[LAYOUT.azimuth("A")] = np.radians(205.0)
+    x[LAYOUT.azimuth_rate("L")] = np.radians(12.0)
+    x[LAYOUT.azimuth_rate("A")] = np.radians(-7.0)
     x[LAYOUT.uwb_bias(("L", "A"))] = 0.3
     x[LAYOUT.uwb_scale(("L", "A"))] = 3.5e-3
     x[LAYOUT.uwb_bias(("A", "B"))] = -0.2

@@ -272,7 +272,13 @@ def _faulty(info: UpdateInfo, ev: Event) -> bool:
 def run_solution(sol: SolutionSection, ekf: ClusterEkf, events: Sequence[Event], output_times: Sequence[float],
                  truth_at: Callable[[float], TrafficStep | None], lead: str, vehicles: Sequence[str],
                  on_epoch: Callable[[float, str, ClusterEkf, TrafficStep, list[dict[str, Any]]], None] | None = None) -> SolutionRecord:
-    """Filter the delivered events with one solution and record an estimate at every output epoch."""
+    """Filter the delivered events with one solution and record an estimate at every output epoch.
+
+    Output epochs are the GNSS epoch grid (they continue through GNSS outages). In an
+    output interval with no usable GNSS, a solution with ``height_aiding_sigma_m`` adds the
+    "relative up = 0" pseudo-measurement once, before its UWB and bearing updates (UWB and
+    bearings carry no vertical information; see ``FilterConfig.height_aiding_sigma_m``).
+    """
     rec = SolutionRecord(sol.name)
     use = set(sol.sensors)
     t_filter: float | None = None
@@ -280,6 +286,11 @@ def run_solution(sol: SolutionSection, ekf: ClusterEkf, events: Sequence[Event],
     pending: list[UpdateInfo] = []
     n_events = len(events)
     for t_out in output_times:
+        has_gnss = any(
+            events[k].kind == "gnss" and events[k].lead_base_ecef_m is not None
+            for k in range(ei, n_events) if events[k].t_s <= t_out + 1e-9
+        ) if sol.height_aiding_sigma_m is not None else True
+        aided = False
         while ei < n_events and events[ei].t_s <= t_out + 1e-9:
             ev = events[ei]
             ei += 1
@@ -289,14 +300,18 @@ def run_solution(sol: SolutionSection, ekf: ClusterEkf, events: Sequence[Event],
                 t_filter = ev.t_s
             ekf.predict(max(0.0, ev.t_s - t_filter))
             t_filter = max(t_filter, ev.t_s)
+            infos = []
+            if not has_gnss and not aided and sol.height_aiding_sigma_m is not None:
+                infos += ekf.update_height_aiding(sol.height_aiding_sigma_m)
+                aided = True
             if ev.kind == "gnss":
                 if ev.lead_base_ecef_m is None:
                     continue
                 infos = ekf.update_gnss(ev.gnss or {}, ev.lead_base_ecef_m)
             elif ev.kind == "uwb":
-                infos = ekf.update_uwb(ev.uwb)  # type: ignore[arg-type]
+                infos += ekf.update_uwb(ev.uwb)  # type: ignore[arg-type]
             else:
-                infos = ekf.update_bearings(ev.bearings)  # type: ignore[arg-type]
+                infos += ekf.update_bearings(ev.bearings)  # type: ignore[arg-type]
             for info in infos:
                 u = rec.updates
                 u["t_s"].append(ev.t_s)

@@ -223,6 +223,8 @@ def run_scenario(
         if "bearing" in used:
             bearings = build_bearing(scenario).simulate(steps, np.random.default_rng(seeds[STREAM_BEARING]), occlusion=occlusion)
         timing["bearing"] = time.perf_counter() - t0
+        # Output epochs: the GNSS grid as synthesized, before faults (so they continue through outages).
+        grid_times = [t for t, _ in gnss_epochs]
         fault_log = None
         if scenario.faults:
             from v2v.faults import FaultLog, apply_bearing_faults, apply_gnss_faults, apply_uwb_faults
@@ -272,7 +274,7 @@ def run_scenario(
                     return _s["x"]
 
                 cl_epochs = [(t, {v: e for v, e in eps.items() if v in members}) for t, eps in gnss_epochs]
-                output_times = [t for t, eps in cl_epochs if lead in eps]
+                output_times = [t for t in grid_times if (st := truth_at(t)) is not None and lead in st.vehicles]
                 dropped = None
                 if scenario.faults:
                     from v2v.faults import message_dropped

@@ -100,6 +100,12 @@ class SolutionSection(_Model):
     clock_drift_sigma_mps: float = Field(default=1000.0, gt=0.0)
     clock_drift_tau_s: float = Field(default=10.0, gt=0.0)
     height_aiding_sigma_m: float | None = Field(default=None, gt=0.0)
+    # Estimated-azimuth process model (azimuth = "estimated" only): azimuth = integral of a
+    # first-order Gauss-Markov yaw rate (sigma, tau) plus a random walk. yaw_rate_sigma_deg_s = 0
+    # drops the yaw-rate state (pure random walk). See v2v.estimation.process.
+    azimuth_rw_deg_per_sqrt_s: float = Field(default=2.0, ge=0.0)
+    yaw_rate_sigma_deg_s: float = Field(default=30.0, ge=0.0)
+    yaw_rate_tau_s: float = Field(default=1.0, gt=0.0)
 
     @field_validator("sensors")
     @classmethod

@@ -61,9 +61,16 @@ from scipy.stats import norm
 
 from v2v.errors import UserError
 from v2v.estimation import models
-from v2v.estimation.layout import AZIMUTH, UWB, VEHICLE, StateLayout, uwb_pair_key
+from v2v.estimation.layout import AZIMUTH, AZIMUTH_RATE, UWB, VEHICLE, StateLayout, uwb_pair_key
 from v2v.estimation.models import GnssGeometry, Row
-from v2v.estimation.process import ProcessNoiseConfig, random_walk_variances, vehicle_block
+from v2v.estimation.process import (
+    ProcessNoiseConfig,
+    azimuth_block,
+    azimuth_pairs,
+    random_walk_indices,
+    random_walk_variances,
+    vehicle_block,
+)
 from v2v.frames import wrap_angle
 from v2v.measmodels import bearing_rad
 from v2v.sensors.measurements import Bearings, GnssEpoch, UwbRanges
@@ -245,6 +252,8 @@ class ClusterFilterBase(ABC):
     def _prior(self, layout: StateLayout) -> tuple[F64, F64]:
         n = layout.n
         var = np.full(n, self.config.uninitialized_variance)
+        for v in layout.azimuth_rate_vehicles:
+            var[layout.azimuth_rate(v)] = self.config.process.yaw_rate_sigma_rps**2  # GM steady state
         for pair in layout.uwb_pairs:
             var[layout.uwb_bias(pair)] = self.config.uwb_bias_sigma0_m**2
             var[layout.uwb_scale(pair)] = self.config.uwb_scale_sigma0**2
@@ -266,6 +275,12 @@ class ClusterFilterBase(ABC):
 
     def azimuth_rad(self, v: str) -> float:
         return float(wrap_angle(self._get_x()[self.layout.azimuth(v)]))
+
+    def azimuth_rate_rps(self, v: str) -> float:
+        """Estimated azimuth rate of ``v`` (rad/s); NaN when the layout has no rate state."""
+        if not self.layout.has(AZIMUTH_RATE, v):
+            return float("nan")
+        return float(self._get_x()[self.layout.azimuth_rate(v)])
 
     def _count(self, key: str) -> None:
         self.counters[key] = self.counters.get(key, 0) + 1
@@ -758,8 +773,8 @@ class ClusterEkf(ClusterFilterBase):
         self._x = np.array(x, dtype=float)
         self._P = np.array(P, dtype=float)
         self._veh0, self._nveh = self.layout.vehicle_blocks_contiguous()
-        self._rw_index = [(s, kind) for kind, key in self.layout.blocks if kind != VEHICLE
-                          for s in [self.layout.block(kind, key)]]
+        self._rw_index = random_walk_indices(self.layout)
+        self._az_pairs = np.array(azimuth_pairs(self.layout), dtype=np.int64).reshape(-1, 2)
 
     def _get_x(self) -> F64:
         return self._x
@@ -786,6 +801,22 @@ class ClusterEkf(ClusterFilterBase):
         for s, kind in self._rw_index:
             q = random_walk_variances(self.config.process, kind, dt_s)
             self._P[s, s] += np.diag(q)
+        if len(self._az_pairs):
+            fa, qa = azimuth_block(self.config.process, dt_s)
+            ia, ir = self._az_pairs[:, 0], self._az_pairs[:, 1]
+            xa, xr = self._x[ia].copy(), self._x[ir].copy()
+            self._x[ia] = fa[0, 0] * xa + fa[0, 1] * xr
+            self._x[ir] = fa[1, 0] * xa + fa[1, 1] * xr
+            ra, rr = self._P[ia, :].copy(), self._P[ir, :].copy()
+            self._P[ia, :] = fa[0, 0] * ra + fa[0, 1] * rr
+            self._P[ir, :] = fa[1, 0] * ra + fa[1, 1] * rr
+            ca, cr = self._P[:, ia].copy(), self._P[:, ir].copy()
+            self._P[:, ia] = ca * fa[0, 0] + cr * fa[0, 1]
+            self._P[:, ir] = ca * fa[1, 0] + cr * fa[1, 1]
+            self._P[ia, ia] += qa[0, 0]
+            self._P[ia, ir] += qa[0, 1]
+            self._P[ir, ia] += qa[1, 0]
+            self._P[ir, ir] += qa[1, 1]
         self._P = 0.5 * (self._P + self._P.T)
 
     def _apply(self, row: Row, z: float, r_var: float, wrap: bool, test: bool) -> tuple[float, float, bool]:

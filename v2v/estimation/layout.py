@@ -12,6 +12,9 @@ vehicle    vehicle id            8     relative position ENU (3, m), relative ve
 azimuth    vehicle id            1     absolute azimuth (rad, clockwise from north) of a
                                        bearing-measuring vehicle, the lead included
                                        (paper section 2.2, azimuth-unknown case)
+az_rate    vehicle id            1     azimuth rate (yaw rate, rad/s) of a vehicle with an
+                                       azimuth block (optional; see
+                                       :mod:`v2v.estimation.process` for its model)
 uwb        (id_a, id_b) sorted   2     UWB bias (m) and scale factor (unitless) of one
                                        radio pair (MacGougan (2009) eq. 3.4-3.5, 3.9)
 ========== ===================== ===== =================================================
@@ -39,10 +42,11 @@ F64 = NDArray[np.float64]
 
 VEHICLE = "vehicle"
 AZIMUTH = "azimuth"
+AZIMUTH_RATE = "az_rate"
 UWB = "uwb"
 
 #: Size of each block kind.
-BLOCK_SIZES: dict[str, int] = {VEHICLE: 8, AZIMUTH: 1, UWB: 2}
+BLOCK_SIZES: dict[str, int] = {VEHICLE: 8, AZIMUTH: 1, AZIMUTH_RATE: 1, UWB: 2}
 
 # Offsets inside a vehicle block.
 _POS = slice(0, 3)
@@ -90,6 +94,9 @@ class StateLayout:
                 raise UserError("the lead vehicle has no relative-state block", field="layout.vehicles")
             offsets[(kind, key)] = i
             i += BLOCK_SIZES[kind]
+        for kind, key in self.blocks:
+            if kind == AZIMUTH_RATE and (AZIMUTH, key) not in offsets:
+                raise UserError(f"azimuth-rate block of {key!r} has no azimuth block", field="layout.blocks")
         object.__setattr__(self, "_offsets", offsets)
         object.__setattr__(self, "n", i)
 
@@ -102,8 +109,10 @@ class StateLayout:
         vehicles: tuple[str, ...] | list[str],
         azimuth_vehicles: tuple[str, ...] | list[str] = (),
         uwb_pairs: tuple[tuple[str, str], ...] | list[tuple[str, str]] = (),
+        azimuth_rates: bool = False,
     ) -> StateLayout:
-        """Layout with vehicle blocks first, then azimuth blocks, then UWB pair blocks."""
+        """Layout with vehicle blocks first, then azimuth blocks (each followed by its
+        azimuth-rate block when ``azimuth_rates``), then UWB pair blocks."""
         known = {lead, *vehicles}
         for v in azimuth_vehicles:
             if v not in known:
@@ -115,7 +124,7 @@ class StateLayout:
             pairs.append(uwb_pair_key(a, b))
         blocks = (
             [(VEHICLE, v) for v in vehicles]
-            + [(AZIMUTH, v) for v in azimuth_vehicles]
+            + [b for v in azimuth_vehicles for b in ([(AZIMUTH, v), (AZIMUTH_RATE, v)] if azimuth_rates else [(AZIMUTH, v)])]
             + [(UWB, p) for p in pairs]
         )
         return cls(lead=lead, blocks=tuple(blocks))
@@ -129,6 +138,10 @@ class StateLayout:
     @property
     def azimuth_vehicles(self) -> tuple[str, ...]:
         return tuple(k for kind, k in self.blocks if kind == AZIMUTH)
+
+    @property
+    def azimuth_rate_vehicles(self) -> tuple[str, ...]:
+        return tuple(k for kind, k in self.blocks if kind == AZIMUTH_RATE)
 
     @property
     def uwb_pairs(self) -> tuple[tuple[str, str], ...]:
@@ -169,6 +182,10 @@ class StateLayout:
     def azimuth(self, v: str) -> int:
         """Absolute azimuth (rad, clockwise from north) of bearing-measuring vehicle ``v``."""
         return self.block(AZIMUTH, v).start
+
+    def azimuth_rate(self, v: str) -> int:
+        """Azimuth rate (yaw rate, rad/s, clockwise positive) of ``v``, when the layout has it."""
+        return self.block(AZIMUTH_RATE, v).start
 
     def uwb_bias(self, pair: tuple[str, str]) -> int:
         """UWB range bias (m) of a radio pair (order of the pair does not matter)."""
@@ -220,14 +237,14 @@ class StateLayout:
         return self.with_block(VEHICLE, v, mean=mean, variance=variance)
 
     def without_vehicle(self, v: str) -> tuple[StateLayout, Remap]:
-        """Remove vehicle ``v``: its block, its azimuth block and every UWB pair it is in.
+        """Remove vehicle ``v``: its block, its azimuth (and rate) block and every UWB pair it is in.
 
         Removing a block marginalizes it: the remaining rows/columns of x and P are kept.
         """
         keep = tuple(
             (kind, key)
             for kind, key in self.blocks
-            if not (key == v and kind in (VEHICLE, AZIMUTH)) and not (kind == UWB and v in key)
+            if not (key == v and kind in (VEHICLE, AZIMUTH, AZIMUTH_RATE)) and not (kind == UWB and v in key)
         )
         new = StateLayout(lead=self.lead, blocks=keep)
         return new, _make_remap(self, new, {})

@@ -9,8 +9,22 @@ with first-order Gauss-Markov (GM) velocity and clock drift whose steady-state s
 deviation sigma gives the white-noise spectral density ``q = 2 sigma^2 / tau``. The
 paper's values: tau_v = 2 s, sigma_v = 10 m/s horizontal, 1 m/s vertical; clock drift
 sigma_d = 1000 m/s, tau_d = 10 s. The clock bias integrates the drift (plus optional
-white noise, zero by default). Azimuth, UWB bias and UWB scale-factor states are random
+white noise, zero by default). UWB bias and UWB scale-factor states are random
 walks (MacGougan (2009) section 3.4.2, eq. 3.12-3.13): ``d/dt a = w_a``.
+
+An estimated azimuth (paper section 5.3) is a random walk, or, when the layout gives it
+an azimuth-rate block, the integral of a first-order GM yaw rate plus a random walk::
+
+    d/dt alpha = omega + w_alpha,   d/dt omega = -omega / tau_w + w_omega,
+    E[w_alpha^2] = q_alpha (= azimuth_rw^2),   E[w_omega^2] = 2 sigma_w^2 / tau_w
+
+The paper does not state its azimuth process model; it reports azimuth errors "typically
+less than 0.2 deg with larger errors occurring during rapid vehicle manoeuvres" (Fig. 14,
+which plots the azimuth rate beside the error). A random walk lags a sustained turn by
+about ``omega dt`` per prediction; the bearing innovations that lag causes are then
+shared between the azimuth and the (loosely modelled, sigma 10 m/s) relative positions,
+which rotates the estimated cluster. With the yaw-rate state the prediction follows the
+turn (see the README's azimuth study for the numbers).
 
 Discretization uses the continuous noise model (Pabolleta (2020) eq. 3.6,
 ``Q = int_0^dt Phi(t) G Qc G^T Phi(t)^T dt``) evaluated exactly with Van Loan's
@@ -52,6 +66,8 @@ class ProcessNoiseConfig:
     clock_bias_psd_m2ps : white-noise PSD added directly to the clock bias (m^2/s);
         0 = bias is the pure integral of the drift.
     azimuth_rw_rad_per_sqrt_s : azimuth random-walk strength (rad/sqrt(s)).
+    yaw_rate_sigma_rps, yaw_rate_tau_s : GM steady-state std (rad/s) and correlation time
+        (s) of the azimuth rate, used for azimuths that have an azimuth-rate block.
     uwb_bias_rw_m_per_sqrt_s, uwb_scale_rw_per_sqrt_s : UWB bias (m/sqrt(s)) and scale
         factor (1/sqrt(s)) random walks (MacGougan (2009): bias drifts slowly with
         temperature, the scale factor is almost a random constant).
@@ -64,16 +80,19 @@ class ProcessNoiseConfig:
     drift_sigma_mps: float = 1000.0
     clock_bias_psd_m2ps: float = 0.0
     azimuth_rw_rad_per_sqrt_s: float = np.radians(5.0)
+    yaw_rate_sigma_rps: float = np.radians(30.0)
+    yaw_rate_tau_s: float = 1.0
     uwb_bias_rw_m_per_sqrt_s: float = 0.01
     uwb_scale_rw_per_sqrt_s: float = 1e-5
 
     def __post_init__(self) -> None:
-        for name in ("vel_tau_s", "drift_tau_s"):
+        for name in ("vel_tau_s", "drift_tau_s", "yaw_rate_tau_s"):
             if not getattr(self, name) > 0.0:
                 raise UserError(f"must be > 0, got {getattr(self, name)!r}", field=f"process.{name}",
                                 fix="give a positive correlation time in seconds")
         for name in ("vel_sigma_horizontal_mps", "vel_sigma_vertical_mps", "drift_sigma_mps",
-                     "clock_bias_psd_m2ps", "azimuth_rw_rad_per_sqrt_s", "uwb_bias_rw_m_per_sqrt_s",
+                     "clock_bias_psd_m2ps", "azimuth_rw_rad_per_sqrt_s", "yaw_rate_sigma_rps",
+                     "uwb_bias_rw_m_per_sqrt_s",
                      "uwb_scale_rw_per_sqrt_s"):
             if not getattr(self, name) >= 0.0:
                 raise UserError(f"must be >= 0, got {getattr(self, name)!r}", field=f"process.{name}")
@@ -126,6 +145,23 @@ def vehicle_block(cfg: ProcessNoiseConfig, dt_s: float) -> tuple[F64, F64]:
     return _vehicle_block(cfg, float(dt_s))
 
 
+@lru_cache(maxsize=64)
+def _azimuth_block(cfg: ProcessNoiseConfig, dt_s: float) -> tuple[F64, F64]:
+    f, q = van_loan(*_gm_integrated(cfg.yaw_rate_tau_s, cfg.yaw_rate_sigma_rps, cfg.azimuth_rw_rad_per_sqrt_s**2), dt_s)
+    f.setflags(write=False)
+    q.setflags(write=False)
+    return f, q
+
+
+def azimuth_block(cfg: ProcessNoiseConfig, dt_s: float) -> tuple[F64, F64]:
+    """(F, Q) of an [azimuth, azimuth rate] pair, cached per (config, dt). Read-only arrays.
+
+    Closed form (same as a velocity axis): ``F = [[1, tau (1 - e)], [0, e]]``,
+    ``e = exp(-dt / tau)``; Q from Van Loan with ``G Qc G^T = diag(q_alpha, 2 sigma^2 / tau)``.
+    """
+    return _azimuth_block(cfg, float(dt_s))
+
+
 def random_walk_variances(cfg: ProcessNoiseConfig, kind: str, dt_s: float) -> F64:
     """Per-state Q diagonal of a random-walk block (F = I): ``q dt``."""
     if kind == AZIMUTH:
@@ -133,6 +169,18 @@ def random_walk_variances(cfg: ProcessNoiseConfig, kind: str, dt_s: float) -> F6
     if kind == UWB:
         return np.array([cfg.uwb_bias_rw_m_per_sqrt_s**2 * dt_s, cfg.uwb_scale_rw_per_sqrt_s**2 * dt_s])
     raise ValueError(f"{kind!r} is not a random-walk block")
+
+
+def azimuth_pairs(layout: StateLayout) -> list[tuple[int, int]]:
+    """(azimuth index, azimuth-rate index) of every azimuth that has a rate block."""
+    return [(layout.azimuth(v), layout.azimuth_rate(v)) for v in layout.azimuth_rate_vehicles]
+
+
+def random_walk_indices(layout: StateLayout) -> list[tuple[slice, str]]:
+    """(slice, kind) of every random-walk block: UWB pairs and azimuths without a rate."""
+    rated = set(layout.azimuth_rate_vehicles)
+    return [(layout.block(kind, key), kind) for kind, key in layout.blocks
+            if kind == UWB or (kind == AZIMUTH and key not in rated)]
 
 
 def transition(layout: StateLayout, cfg: ProcessNoiseConfig, dt_s: float) -> tuple[F64, F64]:
@@ -146,6 +194,12 @@ def transition(layout: StateLayout, cfg: ProcessNoiseConfig, dt_s: float) -> tup
         if kind == VEHICLE:
             f[s, s] = fb
             q[s, s] = qb
-        else:
-            q[s, s] = np.diag(random_walk_variances(cfg, kind, dt_s))
+    for s, kind in random_walk_indices(layout):
+        q[s, s] = np.diag(random_walk_variances(cfg, kind, dt_s))
+    if layout.azimuth_rate_vehicles:
+        fa, qa = azimuth_block(cfg, dt_s)
+        for ia, ir in azimuth_pairs(layout):
+            ix = np.ix_([ia, ir], [ia, ir])
+            f[ix] = fa
+            q[ix] = qa
     return f, q

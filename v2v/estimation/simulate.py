@@ -37,7 +37,7 @@ from numpy.typing import NDArray
 
 from v2v.estimation.filter import FilterConfig
 from v2v.estimation.layout import StateLayout, uwb_pair_key
-from v2v.estimation.process import random_walk_variances, vehicle_block
+from v2v.estimation.process import azimuth_block, random_walk_variances, vehicle_block
 from v2v.frames import (
     azimuth_elevation,
     ecef_to_enu_rotation,
@@ -82,6 +82,7 @@ class SimScenario:
     uwb_state_pairs: tuple[tuple[str, str], ...] = ()  # pairs with bias/scale truth (process mode)
     uwb_bias_m: float = 0.0  # kinematic mode: bias of every pair in uwb_state_pairs
     uwb_scale: float = 0.0
+    azimuth_rates: bool = False  # process mode: azimuths integrate a GM yaw rate (process.azimuth_block)
 
 
 @dataclass(frozen=True, kw_only=True)
@@ -95,6 +96,7 @@ class SimEpoch:
     bearings: Bearings | None
     rel_state: dict[str, F64]  # vehicle -> [p(3), v(3), clk, drift]
     azimuth_rad: dict[str, float]
+    azimuth_rate_rps: dict[str, float] = field(default_factory=dict)
     uwb_bias_scale: dict[tuple[str, str], tuple[float, float]] = field(default_factory=dict)
     lead_azimuth_rad: float = 0.0
 
@@ -105,6 +107,8 @@ class SimEpoch:
             x[layout.block("vehicle", v)] = self.rel_state[v]
         for v in layout.azimuth_vehicles:
             x[layout.azimuth(v)] = self.azimuth_rad[v]
+        for v in layout.azimuth_rate_vehicles:
+            x[layout.azimuth_rate(v)] = self.azimuth_rate_rps.get(v, 0.0)
         for pair in layout.uwb_pairs:
             b, s = self.uwb_bias_scale.get(pair, (0.0, 0.0))
             x[layout.uwb_bias(pair)] = b
@@ -162,6 +166,10 @@ def simulate(scn: SimScenario, cfg: FilterConfig, rng: np.random.Generator) -> l
             s[3:6] = rng.normal(0.0, [sig_vh, sig_vh, sig_vv])
         rel[v] = s
     az = {v: scn.heading_rad for v in ids}
+    az_rate = {v: (rng.normal(0.0, pcfg.yaw_rate_sigma_rps) if scn.truth == "process" and scn.azimuth_rates
+                   else scn.turn_rate_rps) for v in ids}
+    if scn.azimuth_rates:
+        fa, qa = azimuth_block(pcfg, scn.dt_s)
     uwb_bs = {}
     for a, b in scn.uwb_state_pairs:
         key = uwb_pair_key(a, b)
@@ -193,7 +201,10 @@ def simulate(scn: SimScenario, cfg: FilterConfig, rng: np.random.Generator) -> l
                         * scn.turn_rate_rps
                 rel[v] = s_new
             for v in ids:
-                if scn.truth == "process":
+                if scn.truth == "process" and scn.azimuth_rates:
+                    a_new = fa @ np.array([az[v], az_rate[v]]) + _draw(rng, qa)
+                    az[v], az_rate[v] = float(wrap_angle(a_new[0])), float(a_new[1])
+                elif scn.truth == "process":
                     az[v] = float(wrap_angle(az[v] + np.sqrt(random_walk_variances(pcfg, "azimuth", scn.dt_s)[0])
                                              * rng.standard_normal()))
                 else:
@@ -278,7 +289,7 @@ def simulate(scn: SimScenario, cfg: FilterConfig, rng: np.random.Generator) -> l
                                 true_azimuth_rad=np.array(az_l), los=np.ones(m, dtype=bool))
         epochs.append(SimEpoch(
             t_s=t, gnss=gnss, lead_base_ecef_m=lead_ecef, uwb=uwb, bearings=bearings,
-            rel_state={v: rel[v].copy() for v in followers}, azimuth_rad=dict(az),
+            rel_state={v: rel[v].copy() for v in followers}, azimuth_rad=dict(az), azimuth_rate_rps=dict(az_rate),
             uwb_bias_scale=dict(uwb_bs), lead_azimuth_rad=heading,
         ))
     return epochs

@@ -1,0 +1,90 @@
+"""Benchmark: production cluster EKF vs the filterpy reference engine.
+
+Both engines (:class:`v2v.estimation.filter.ClusterEkf`, sparse rows and block-wise
+prediction; :class:`v2v.estimation.reference.ReferenceClusterEkf`, dense filterpy) filter
+the *same* simulated measurements (:mod:`v2v.estimation.simulate`: an in-line cluster on
+a gentle arc, GNSS + UWB between every pair + bearings from the lead and v1 with their
+azimuths and yaw rates estimated) for N = 3, 10, 20 vehicles. Printed per N: state size,
+measurement updates per epoch, wall time per epoch of each engine (best of ``--repeat``
+runs, ``time.perf_counter``), the speed ratio measured in this run, and the largest
+state / covariance difference between the engines relative to each quantity's scale
+(``|a - b| / (|b| + sigma)``; they must agree to 1e-9: tests/test_engines_agree.py).
+
+Plain Python, no asserts: numbers depend on the machine; compare ratios, not seconds.
+
+    .venv/bin/python benchmarks/bench_filter.py [--sizes 3 10 20] [--duration 5] [--repeat 3]
+"""
+
+from __future__ import annotations
+
+import argparse
+import time
+
+import numpy as np
+
+from v2v.estimation.filter import ClusterEkf, FilterConfig
+from v2v.estimation.layout import StateLayout
+from v2v.estimation.reference import ReferenceClusterEkf
+from v2v.estimation.simulate import SimScenario, run_filter, simulate, vehicle_ids
+
+
+def _setup(n: int, duration_s: float, seed: int):
+    cfg = FilterConfig()
+    scn = SimScenario(n_vehicles=n, duration_s=duration_s, turn_rate_rps=0.05, bearing_vehicles=("lead", "v1"),
+                      lane_offsets_m=(0.0, 3.5, -3.5))
+    ids = vehicle_ids(n)
+    lay = StateLayout.build(lead="lead", vehicles=ids[1:], azimuth_vehicles=("lead", "v1"), azimuth_rates=True)
+    eps = simulate(scn, cfg, np.random.default_rng(seed))
+    return cfg, scn, lay, eps
+
+
+def _run(engine_cls, cfg, lay, eps, dt_s):
+    ekf = engine_cls(lay, cfg)
+    n_upd = 0
+    t0 = time.perf_counter()
+    states = []
+    for _ep, infos in run_filter(ekf, eps, dt_s):
+        n_upd += len(infos)
+        states.append((ekf.x, ekf.P))
+    wall = time.perf_counter() - t0
+    return wall, n_upd, states
+
+
+def _rel_diff(a: np.ndarray, b: np.ndarray, scale: np.ndarray) -> float:
+    return float(np.max(np.abs(a - b) / (np.abs(b) + scale + 1e-300)))
+
+
+def main(argv: list[str] | None = None) -> int:
+    ap = argparse.ArgumentParser(description=__doc__.splitlines()[0])
+    ap.add_argument("--sizes", type=int, nargs="+", default=[3, 10, 20], help="cluster sizes N (vehicles)")
+    ap.add_argument("--duration", type=float, default=5.0, help="simulated seconds per run (10 Hz epochs)")
+    ap.add_argument("--repeat", type=int, default=3, help="timing repeats (best is reported)")
+    ap.add_argument("--seed", type=int, default=1)
+    args = ap.parse_args(argv)
+
+    print(f"{'N':>3} {'states':>6} {'upd/ep':>7} {'prod ms/ep':>11} {'ref ms/ep':>10} {'speed-up':>9} "
+          f"{'max dx rel':>11} {'max dP rel':>11}")
+    for n in args.sizes:
+        cfg, scn, lay, eps = _setup(n, args.duration, args.seed)
+        best = {}
+        for name, cls in (("prod", ClusterEkf), ("ref", ReferenceClusterEkf)):
+            walls = []
+            for _ in range(args.repeat):
+                wall, n_upd, states = _run(cls, cfg, lay, eps, scn.dt_s)
+                walls.append(wall)
+            best[name] = (min(walls), n_upd, states)
+        (tp, n_upd, sp), (tr, _, sr) = best["prod"], best["ref"]
+        dx = dp = 0.0
+        for (xp, pp), (xr, pr) in zip(sp, sr, strict=True):
+            sd = np.sqrt(np.abs(np.diag(pr)))
+            dx = max(dx, _rel_diff(xp, xr, sd))
+            dp = max(dp, _rel_diff(pp, pr, np.outer(sd, sd)))
+        n_ep = len(eps)
+        flag = "" if max(dx, dp) <= 1e-9 else "  <-- engines DISAGREE (> 1e-9)"
+        print(f"{n:>3} {lay.n:>6} {n_upd / n_ep:>7.1f} {1e3 * tp / n_ep:>11.3f} {1e3 * tr / n_ep:>10.3f} "
+              f"{tr / tp:>8.1f}x {dx:>11.1e} {dp:>11.1e}{flag}")
+    return 0
+
+
+if __name__ == "__main__":
+    raise SystemExit(main())
