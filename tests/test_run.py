@@ -96,3 +96,25 @@ def test_other_seed_changes_measurements(short_run, tmp_path):
     m1 = pd.read_parquet(out / "measurements.parquet")
     m3 = pd.read_parquet(out3 / "measurements.parquet")
     assert not m1["value"].equals(m3["value"])
+
+
+def test_vehicle_leaving_and_rejoining_the_cluster(tmp_path):
+    """A vehicle that leaves (no GNSS, UWB, bearing or message for 15 s) is dropped from the
+    filter after LEAVE_AFTER_S of silence and re-initialized from its first GNSS epoch back."""
+    from v2v.pipeline import LEAVE_AFTER_S
+
+    sc = load_scenario(None, [
+        "duration_s=45.0", 'solutions=[{name="GPS+UWB+Bearing", sensors=["gnss","uwb","bearing"]}]',
+        'faults=[{kind="vehicle_leaves", start_s=15.0, duration_s=15.0, vehicles=["c1.2"]}]',
+    ])
+    run_scenario(sc, tmp_path / "r", quiet=True, replay=False)
+    ep = pd.read_parquet(tmp_path / "r" / "epochs.parquet")
+    v2 = ep[ep.vehicle == "c1.2"].set_index("t_s")
+    gone = v2.loc[15.0 + LEAVE_AFTER_S + 0.2: 29.9]
+    assert len(gone) > 0 and not gone["initialized"].any()
+    back = v2.loc[31.0:]
+    assert back["initialized"].all()
+    # re-initialized from a GNSS snapshot and then filtered: decimetre-level again
+    assert back["across_err_m"].abs().max() < 1.0
+    # the other follower never left
+    assert ep[ep.vehicle == "c1.1"]["initialized"].iloc[20:].all()

@@ -25,7 +25,8 @@ Kinds
 ``nonfinite``         measurements of ``sensor`` (gnss|uwb|bearing) of ``vehicles`` in the window become
                       NaN (``size_m = inf`` for +Inf) with ``probability``.
 ``message_loss``      every V2V message from ``vehicles`` lost in the window (a burst).
-``vehicle_leaves``    ``vehicles`` send nothing in the window (left the cluster, rejoin after).
+``vehicle_leaves``    ``vehicles`` leave the cluster for the window (no GNSS from them, no UWB range or
+                      bearing involving them, no messages) and rejoin after it.
 """
 
 from __future__ import annotations
@@ -113,7 +114,7 @@ def _with_fault(errors: dict[str, np.ndarray], n: int) -> dict[str, np.ndarray]:
 def apply_gnss_faults(epochs: list[tuple[float, dict[str, GnssEpoch]]], faults: list[FaultSection],
                       rng: np.random.Generator, log: FaultLog) -> list[tuple[float, dict[str, GnssEpoch]]]:
     gnss_faults = [(i, f) for i, f in enumerate(faults) if f.kind in (
-        "gnss_outage", "satellites_lost", "clock_jump", "cycle_slip", "pr_blunder") or (f.kind == "nonfinite" and f.sensor == "gnss")]
+        "gnss_outage", "vehicle_leaves", "satellites_lost", "clock_jump", "cycle_slip", "pr_blunder") or (f.kind == "nonfinite" and f.sensor == "gnss")]
     if not gnss_faults:
         return epochs
     out = []
@@ -125,7 +126,7 @@ def apply_gnss_faults(epochs: list[tuple[float, dict[str, GnssEpoch]]], faults: 
             for i, f in gnss_faults:
                 if not (f.targets(v) and f.active(t)):
                     continue
-                if f.kind == "gnss_outage":
+                if f.kind in ("gnss_outage", "vehicle_leaves"):
                     keep = False
                     log.add(i, f.kind)
                     break
@@ -177,11 +178,12 @@ def _take(ep: GnssEpoch, m: np.ndarray) -> GnssEpoch:
 
 def apply_uwb_faults(uwb: UwbRanges | None, faults: list[FaultSection], rng: np.random.Generator,
                      log: FaultLog) -> UwbRanges | None:
-    fs = [(i, f) for i, f in enumerate(faults) if f.kind in ("uwb_blunder", "uwb_replace", "uwb_scale_drift")
+    fs = [(i, f) for i, f in enumerate(faults) if f.kind in ("uwb_blunder", "uwb_replace", "uwb_scale_drift", "vehicle_leaves")
           or (f.kind == "nonfinite" and f.sensor == "uwb")]
     if uwb is None or not fs or uwb.n == 0:
         return uwb
     r = uwb.range_m.copy()
+    keep = np.ones(uwb.n, bool)
     err = _with_fault(uwb.errors_m, uwb.n)
     t = uwb.t_s
     involves = lambda f: np.array([f.targets(a) or f.targets(b) for a, b in zip(uwb.a, uwb.b, strict=True)])  # noqa: E731
@@ -206,19 +208,31 @@ def apply_uwb_faults(uwb: UwbRanges | None, faults: list[FaultSection], rng: np.
             hit = act & (rng.random(uwb.n) < f.probability)
             r = np.where(hit, np.inf if np.isinf(f.size_m) else np.nan, r)
             log.add(i, f.kind, int(hit.sum()))
-    return replace(uwb, range_m=r, errors_m=err)
+        elif f.kind == "vehicle_leaves":  # out of the cluster: out of radio range too
+            keep &= ~act
+            log.add(i, f.kind, int(act.sum()))
+    out = replace(uwb, range_m=r, errors_m=err)
+    if keep.all():
+        return out
+    from v2v.sensors.uwb import select_ranges
+
+    return select_ranges(out, keep)
 
 
 def apply_bearing_faults(b: Bearings | None, faults: list[FaultSection], rng: np.random.Generator,
                          log: FaultLog) -> Bearings | None:
-    fs = [(i, f) for i, f in enumerate(faults) if f.kind == "bearing_outage" or (f.kind == "nonfinite" and f.sensor == "bearing")]
+    fs = [(i, f) for i, f in enumerate(faults) if f.kind in ("bearing_outage", "vehicle_leaves")
+          or (f.kind == "nonfinite" and f.sensor == "bearing")]
     if b is None or not fs or b.n == 0:
         return b
     keep = np.ones(b.n, bool)
     val = b.bearing_rad.copy()
     for i, f in fs:
-        act = np.array([f.active(x) and f.targets(a) for x, a in zip(b.t_s, b.a, strict=True)])
-        if f.kind == "bearing_outage":
+        if f.kind == "vehicle_leaves":
+            act = np.array([f.active(x) and (f.targets(a) or f.targets(c)) for x, a, c in zip(b.t_s, b.a, b.b, strict=True)])
+        else:
+            act = np.array([f.active(x) and f.targets(a) for x, a in zip(b.t_s, b.a, strict=True)])
+        if f.kind in ("bearing_outage", "vehicle_leaves"):
             keep &= ~act
             log.add(i, f.kind, int(act.sum()))
         else:

@@ -39,6 +39,8 @@ from v2v.metrics.errors import lead_frame_errors, lead_frame_rotation
 from v2v.sensors.measurements import Bearings, GnssEpoch, UwbRanges
 from v2v.traffic.snapshot import TrafficStep
 
+LEAVE_AFTER_S = 5.0  # a vehicle the lead has not heard from for this long has left the cluster
+
 STREAM_TRAFFIC, STREAM_GNSS, STREAM_UWB, STREAM_BEARING, STREAM_EXCHANGE, STREAM_FAULTS = range(6)
 N_STREAMS = 6
 
@@ -242,13 +244,18 @@ class SolutionRecord:
 
     name: str
     rows: dict[str, list[Any]] = field(default_factory=dict)
+    membership: list[tuple[float, str, str]] = field(default_factory=list)  # (t_s, vehicle, left|joined)
     updates: dict[str, list[Any]] = field(default_factory=lambda: {"t_s": [], "kind": [], "vehicles": [], "prn": [], "nis": [], "accepted": [], "faulty": []})
 
     def add_row(self, row: dict[str, Any]) -> None:
         if not self.rows:
             self.rows = {k: [] for k in row}
-        for k, v in row.items():
-            self.rows[k].append(v)
+        n = len(next(iter(self.rows.values())))
+        for k in row:
+            if k not in self.rows:  # a column that appears later (e.g. after a vehicle rejoined)
+                self.rows[k] = [float("nan")] * n
+        for k, col in self.rows.items():
+            col.append(row.get(k, float("nan")))
 
 
 def _faulty(info: UpdateInfo, ev: Event) -> bool:
@@ -285,7 +292,15 @@ def run_solution(sol: SolutionSection, ekf: ClusterEkf, events: Sequence[Event],
     ei = 0
     pending: list[UpdateInfo] = []
     n_events = len(events)
+    members = set(vehicles)
+    last_heard: dict[str, float] = {}
     for t_out in output_times:
+        # Cluster membership as the lead sees it: a vehicle silent for LEAVE_AFTER_S has left
+        # (its block is marginalized out); its next GNSS message adds it back (re-initialized).
+        for v in list(ekf.layout.vehicles):
+            if t_out - last_heard.setdefault(v, t_out) > LEAVE_AFTER_S:
+                ekf.remove_vehicle(v)
+                rec.membership.append((t_out, v, "left"))
         has_gnss = any(
             events[k].kind == "gnss" and events[k].lead_base_ecef_m is not None
             for k in range(ei, n_events) if events[k].t_s <= t_out + 1e-9
@@ -300,6 +315,14 @@ def run_solution(sol: SolutionSection, ekf: ClusterEkf, events: Sequence[Event],
                 t_filter = ev.t_s
             ekf.predict(max(0.0, ev.t_s - t_filter))
             t_filter = max(t_filter, ev.t_s)
+            heard = (ev.gnss or {}).keys() if ev.kind == "gnss" else (
+                set(ev.uwb.a) | set(ev.uwb.b) if ev.kind == "uwb" and ev.uwb is not None else
+                set(ev.bearings.a) if ev.bearings is not None else set())
+            for v in heard:
+                last_heard[v] = ev.t_s
+                if ev.kind == "gnss" and v in members and v != lead and v not in ekf.layout.vehicles:
+                    ekf.add_vehicle(v)
+                    rec.membership.append((ev.t_s, v, "joined"))
             infos = []
             if not has_gnss and not aided and sol.height_aiding_sigma_m is not None:
                 infos += ekf.update_height_aiding(sol.height_aiding_sigma_m)
@@ -354,7 +377,10 @@ def _epoch_rows(name: str, t_s: float, ekf: ClusterEkf, step: TrafficStep, lead:
             c[key] = c.get(key, 0) + 1
     for v in vehicles:
         st = step.vehicles.get(v)
-        if st is None or v not in lay.vehicles:
+        if st is None:
+            continue
+        if v not in lay.vehicles:  # left the cluster (as the lead sees it): a row without an estimate
+            rows.append({"t_s": t_s, "solution": name, "vehicle": v, "initialized": False})
             continue
         true_rel = ecef_to_enu(st.ecef_m, lead_st.lat_rad, lead_st.lon_rad, lead_st.ecef_m)
         ready = ekf.is_initialized(v)
