@@ -23,19 +23,14 @@ All runs drive ``open_highway`` (open sky, 3 lanes a direction), one seed, no re
 The actual-error RMS of the same epochs is tabulated beside each sigma as a consistency
 check (the predicted sigma is only meaningful if the errors agree with it).
 
-GNSS outage and the production pipeline
----------------------------------------
-``run_scenario`` as it stands cannot show (d): it writes epochs only when the lead has a GNSS
-epoch (no rows during an outage of every vehicle), and ``pipeline.run_solution`` calls
-``update_gnss`` / ``update_uwb`` / ``update_bearings`` directly, so the solution's
-``height_aiding_sigma_m`` is never applied (only ``ClusterEkf.update_epoch`` applies it).
-Without height aiding the relative height random-walks, every range and bearing is then
-deferred as too nonlinear, and the horizontal solution drifts like GPS alone. The outage is
-therefore run twice: ``pipeline`` = ``run_scenario`` unchanged (shows the gap), and
-``height-aided`` = the same run with :func:`height_aided_pipeline` in force, which, for that
-one run, outputs an epoch at every GNSS tick of the outage and applies height aiding at
-UWB/bearing updates while no GNSS has arrived (what ``update_epoch`` does). Remove it when
-the pipeline does both.
+GNSS outage
+-----------
+``run_scenario`` writes an epoch at every GNSS tick of an outage and applies the solution's
+``height_aiding_sigma_m`` (relative up = 0) before UWB and bearing updates while no GNSS
+arrives (``v2v.pipeline.run_solution``). Without height aiding the relative height random-walks,
+ranges and bearings are deferred as too nonlinear, and the horizontal solution drifts like GPS
+alone. The ``pipeline`` and ``height-aided`` variants of the outage table now run the same code
+(they differed while the pipeline lacked both features).
 
 Outputs in ``--out``: ``covariance_vs_vehicles``, ``covariance_vs_lanes``,
 ``covariance_vs_quality``, ``gnss_outage`` (``.md`` + ``.csv`` each), ``covariance_runs.csv``
@@ -106,87 +101,15 @@ class Case:
         return out
 
 
-# ------------------------------------------------------------------------------ GNSS-outage workaround
-
-
-def _height_aided_ekf_class():
-    from v2v.estimation.filter import ClusterEkf
-
-    class HeightAidedEkf(ClusterEkf):
-        """``ClusterEkf`` that applies ``config.height_aiding_sigma_m`` (relative up = 0) at most
-        once per GNSS period, before a UWB or bearing update, while no follower GNSS has
-        arrived for more than 1.5 periods -- what ``ClusterEkf.update_epoch`` does at an epoch
-        without GNSS and ``pipeline.run_solution`` does not."""
-
-        def __init__(self, layout, config, period_s: float):
-            super().__init__(layout, config)
-            self._period_s = period_s
-            self._since_gnss_s = 0.0
-            self._since_aid_s = np.inf
-
-        def predict(self, dt_s: float) -> None:
-            super().predict(dt_s)
-            self._since_gnss_s += dt_s
-            self._since_aid_s += dt_s
-
-        def update_gnss(self, epochs, lead_base_ecef_m, lead_base_vel_ecef_mps=None):
-            if any(v in epochs for v in self.layout.vehicles):
-                self._since_gnss_s = 0.0
-            return super().update_gnss(epochs, lead_base_ecef_m, lead_base_vel_ecef_mps)
-
-        def _aid(self) -> list:
-            s = self.config.height_aiding_sigma_m
-            if s is None or self._since_gnss_s <= 1.5 * self._period_s or self._since_aid_s < self._period_s - 1e-9:
-                return []
-            self._since_aid_s = 0.0
-            return self.update_height_aiding(s)
-
-        def update_uwb(self, ranges):
-            return self._aid() + super().update_uwb(ranges)
-
-        def update_bearings(self, bearings):
-            return self._aid() + super().update_bearings(bearings)
-
-    return HeightAidedEkf
-
-
-def fill_output_gaps(times: list[float]) -> list[float]:
-    """Output epochs with every gap longer than 1.5 GNSS periods filled at the GNSS period
-    (the median spacing), rounded to the microsecond grid the truth lookup uses."""
-    if len(times) < 3:
-        return list(times)
-    dt = float(np.median(np.diff(times)))
-    out: list[float] = []
-    for a, b in zip(times[:-1], times[1:], strict=True):
-        out.append(a)
-        k = 1
-        while b - (a + k * dt) > 0.5 * dt:
-            out.append(round(a + k * dt, 6))
-            k += 1
-    out.append(times[-1])
-    return out
+# ------------------------------------------------------------------------------ GNSS outage
 
 
 @contextmanager
 def height_aided_pipeline() -> Iterator[None]:
-    """For the runs inside: ``pipeline.run_solution`` with a height-aided filter and output
-    epochs through GNSS gaps (see the module docstring). Restored on exit."""
-    import v2v.pipeline as pl
-
-    original = pl.run_solution
-    ekf_class = _height_aided_ekf_class()
-
-    def run_solution(sol, ekf, events, output_times, truth_at, lead, vehicles, on_epoch=None):
-        times = fill_output_gaps(list(output_times))
-        period = float(np.median(np.diff(times))) if len(times) > 1 else 0.1
-        return original(sol, ekf_class(ekf.layout, ekf.config, period), events, times, truth_at, lead, vehicles,
-                        on_epoch=on_epoch)
-
-    pl.run_solution = run_solution
-    try:
-        yield
-    finally:
-        pl.run_solution = original
+    """Kept for the two outage variants' names: ``v2v.pipeline.run_solution`` itself now writes
+    epochs through GNSS outages and applies the solution's height aiding, so both variants run
+    the same code (an earlier workaround patched the pipeline here)."""
+    yield
 
 
 # ------------------------------------------------------------------------------ runs and statistics

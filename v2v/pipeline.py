@@ -309,20 +309,23 @@ def run_solution(sol: SolutionSection, ekf: ClusterEkf, events: Sequence[Event],
         while ei < n_events and events[ei].t_s <= t_out + 1e-9:
             ev = events[ei]
             ei += 1
-            if ev.kind not in use:
-                continue
-            if t_filter is None:
-                t_filter = ev.t_s
-            ekf.predict(max(0.0, ev.t_s - t_filter))
-            t_filter = max(t_filter, ev.t_s)
+            # any message counts as "heard", whatever sensors this solution uses
             heard = (ev.gnss or {}).keys() if ev.kind == "gnss" else (
                 set(ev.uwb.a) | set(ev.uwb.b) if ev.kind == "uwb" and ev.uwb is not None else
                 set(ev.bearings.a) if ev.bearings is not None else set())
             for v in heard:
                 last_heard[v] = ev.t_s
-                if ev.kind == "gnss" and v in members and v != lead and v not in ekf.layout.vehicles:
-                    ekf.add_vehicle(v)
-                    rec.membership.append((ev.t_s, v, "joined"))
+            if ev.kind not in use:
+                continue
+            if ev.kind == "gnss":
+                for v in heard:
+                    if v in members and v != lead and v not in ekf.layout.vehicles:
+                        ekf.add_vehicle(v)
+                        rec.membership.append((ev.t_s, v, "joined"))
+            if t_filter is None:
+                t_filter = ev.t_s
+            ekf.predict(max(0.0, ev.t_s - t_filter))
+            t_filter = max(t_filter, ev.t_s)
             infos = []
             if not has_gnss and not aided and sol.height_aiding_sigma_m is not None:
                 infos += ekf.update_height_aiding(sol.height_aiding_sigma_m)
