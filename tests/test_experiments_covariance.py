@@ -30,12 +30,6 @@ def _png(path: Path) -> None:
     assert path.read_bytes()[:8] == b"\x89PNG\r\n\x1a\n"
 
 
-def test_fill_output_gaps_restores_the_gnss_grid():
-    mod = _load("covariance_analysis")
-    assert mod.fill_output_gaps([0.0, 0.1, 0.2, 0.3, 1.0, 1.1]) == pytest.approx(np.arange(12) / 10)
-    assert mod.fill_output_gaps([0.0, 0.1, 0.2]) == [0.0, 0.1, 0.2]
-
-
 def test_covariance_analysis_quick(tmp_path):
     """Cars in line on one lane, ~28 m apart (two-second rule at 50 km/h).
 
