@@ -255,6 +255,7 @@ def run_scenario(
             timing["replay_static_truth"] = time.perf_counter() - t0
             records = []
             updates: dict[str, pd.DataFrame] = {}
+            membership: dict[str, list[dict[str, Any]]] = {}
             t0 = time.perf_counter()
             on_epoch = _epoch_logger(logger, net.georef) if replay else None
             n_filters = len(scenario.clusters) * len(scenario.solutions)
@@ -297,6 +298,8 @@ def run_scenario(
                         records.append(df)
                     key = sol.name if len(scenario.clusters) == 1 else f"{cluster.name}/{sol.name}"
                     updates[key] = pd.DataFrame(rec.updates)
+                    if rec.membership:
+                        membership[key] = [{"t_s": t, "vehicle": v, "change": c} for t, v, c in rec.membership]
                     fbar.update(1)
                 exchange_stats = exch.stats
             fbar.close()
@@ -348,6 +351,7 @@ def run_scenario(
             "truth_rows": truth.rows_written,
             "statistics": sol_stats,
             "lane_level": lane_records,
+            "filter_membership": membership,  # vehicles the lead's filter dropped (silent) and re-added
         }
         if t_end + 1e-9 < scenario.duration_s - scenario.step_length_s:
             summary["note"] = f"all cluster vehicles reached the end of the route at t = {t_end:.1f} s"
