@@ -41,7 +41,7 @@ def test_clock_jump_is_one_millisecond_on_code_and_phase_from_its_start():
         np.testing.assert_allclose(d_pr, expect, atol=1e-6)
         np.testing.assert_allclose(d_ph, expect, atol=1e-6)
         np.testing.assert_array_equal(eps["c1.0"].pseudorange_m, 2.2e7)
-        np.testing.assert_allclose(eps["c1.1"].errors_m.get("fault", np.zeros(6)), expect, atol=1e-6)
+        np.testing.assert_allclose(eps["c1.1"].errors_m.get("clock_jump", np.zeros(6)), expect, atol=1e-6)
 
 
 def test_outage_and_lost_satellites_drop_measurements():

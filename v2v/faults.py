@@ -135,9 +135,11 @@ def apply_gnss_faults(epochs: list[tuple[float, dict[str, GnssEpoch]]], faults: 
                     log.add(i, f.kind, int((~m).sum()))
                     ep = _take(ep, m)
                 elif f.kind == "clock_jump":
+                    # Common to every satellite of the receiver: a clock error (the filter's clock
+                    # state may absorb it), recorded apart from measurement faults.
                     d = f.size_or_default_m()
-                    err = _with_fault(ep.errors_m, ep.n)
-                    err["fault"] += d
+                    err = dict(ep.errors_m)
+                    err["clock_jump"] = err.get("clock_jump", np.zeros(ep.n)) + d
                     ep = replace(ep, pseudorange_m=ep.pseudorange_m + d,
                                  carrier_cycles=ep.carrier_cycles + d / GPS_L1_WAVELENGTH_M, errors_m=err)
                     log.add(i, f.kind, ep.n)

@@ -245,6 +245,7 @@ class SolutionRecord:
     name: str
     rows: dict[str, list[Any]] = field(default_factory=dict)
     membership: list[tuple[float, str, str]] = field(default_factory=list)  # (t_s, vehicle, left|joined)
+    counters: dict[str, int] = field(default_factory=dict)  # the filter's event counters at the end
     updates: dict[str, list[Any]] = field(default_factory=lambda: {"t_s": [], "kind": [], "vehicles": [], "prn": [], "nis": [], "accepted": [], "faulty": []})
 
     def add_row(self, row: dict[str, Any]) -> None:
@@ -362,6 +363,7 @@ def run_solution(sol: SolutionSection, ekf: ClusterEkf, events: Sequence[Event],
         if on_epoch is not None:
             on_epoch(t_out, sol.name, ekf, step, rows)
         pending = []
+    rec.counters = dict(ekf.counters)
     return rec
 
 
@@ -412,6 +414,7 @@ def _epoch_rows(name: str, t_s: float, ekf: ClusterEkf, step: TrafficStep, lead:
         for kind in ("pr", "doppler", "uwb", "bearing"):
             row[f"used_{kind}"] = c.get(f"used_{kind}", 0)
             row[f"rejected_{kind}"] = c.get(f"rejected_{kind}", 0)
+        row["integrity_available"] = bool(getattr(ekf, "integrity_available", {}).get(v, False))
         if lay.has("azimuth", v):
             row["azimuth_err_rad"] = float(_wrap(ekf.azimuth_rad(v) - st.azimuth_rad)) if ekf.is_azimuth_initialized(v) else float("nan")
         rows.append(row)

@@ -256,6 +256,7 @@ def run_scenario(
             records = []
             updates: dict[str, pd.DataFrame] = {}
             membership: dict[str, list[dict[str, Any]]] = {}
+            filter_counters: dict[str, dict[str, int]] = {}
             t0 = time.perf_counter()
             on_epoch = _epoch_logger(logger, net.georef) if replay else None
             n_filters = len(scenario.clusters) * len(scenario.solutions)
@@ -298,6 +299,7 @@ def run_scenario(
                         records.append(df)
                     key = sol.name if len(scenario.clusters) == 1 else f"{cluster.name}/{sol.name}"
                     updates[key] = pd.DataFrame(rec.updates)
+                    filter_counters[key] = rec.counters
                     if rec.membership:
                         membership[key] = [{"t_s": t, "vehicle": v, "change": c} for t, v, c in rec.membership]
                     fbar.update(1)
@@ -351,7 +353,8 @@ def run_scenario(
             "truth_rows": truth.rows_written,
             "statistics": sol_stats,
             "lane_level": lane_records,
-            "filter_membership": membership,  # vehicles the lead's filter dropped (silent) and re-added
+            "filter_membership": membership,
+            "filter_counters": filter_counters,  # e.g. clock_jump_detected, divergence_reset, nonfinite_*  # vehicles the lead's filter dropped (silent) and re-added
         }
         if t_end + 1e-9 < scenario.duration_s - scenario.step_length_s:
             summary["note"] = f"all cluster vehicles reached the end of the route at t = {t_end:.1f} s"

@@ -99,7 +99,9 @@ class SolutionSection(_Model):
     velocity_tau_s: float = Field(default=2.0, gt=0.0)
     clock_drift_sigma_mps: float = Field(default=1000.0, gt=0.0)
     clock_drift_tau_s: float = Field(default=10.0, gt=0.0)
-    height_aiding_sigma_m: float | None = Field(default=None, gt=0.0)
+    # "relative up = 0 +- sigma" in epochs without GNSS (cars on one locally flat road): UWB and
+    # bearings carry no height, and without it their geometry degrades within seconds of an outage.
+    height_aiding_sigma_m: float | None = Field(default=1.0, gt=0.0)
     # Estimated-azimuth process model (azimuth = "estimated" only): azimuth = integral of a
     # first-order Gauss-Markov yaw rate (sigma, tau) plus a random walk. yaw_rate_sigma_deg_s = 0
     # drops the yaw-rate state (pure random walk). See v2v.estimation.process.

@@ -44,6 +44,31 @@ measurement variance, e.g. just after a metre-level GNSS initialization; when us
 mean is added to h(x) and the variance to R. Without this the EKF was measurably
 overconfident in Monte Carlo (average NEES 43 instead of 16 in the first seconds).
 
+Fault handling (issue 8):
+
+* Multiple blunders: when the epoch's w-test screen (above) flags more than one
+  pseudorange (or Doppler) of a vehicle, all flagged ones are excluded (reported as
+  rejected, counted ``excluded_screened``) instead of going through the sequential test,
+  where an earlier accepted blunder would bias the S of the later ones.
+  ``integrity_available[v]`` is False for an epoch whose screen could not isolate faults:
+  fewer than 4 + 2 measurements, or the screen stopped at redundancy < 2 or at singular
+  geometry while a |w| > k remained.
+* Receiver clock jump: a step ``d`` of one receiver's clock (e.g. 1 ms = 299 792.458 m)
+  shifts every SD pseudorange of that vehicle by the same ``d``. Before the sequential
+  updates, the innovations ``nu_i`` (with variances ``S_i``) of the vehicle are checked
+  for a common mode: more than half fail the gate, all of those with the same sign, and
+  after removing ``m = median(nu)`` a majority pass ``|nu_i - m| <= k sqrt(S_i)``. Then
+  only the clock state is re-initialized, ``clk += m`` with variance
+  ``clock_reset_sigma_m^2`` and zero correlations (the baseline is untouched), counted
+  ``clock_jump_detected``; the epoch's pseudoranges are then used normally.
+* Divergence: the last ``divergence_window`` SD-pseudorange tests of each vehicle are
+  kept; when more than ``divergence_reject_fraction`` of a full window was rejected
+  (under H0 the rejections are Binomial(N, alpha): P(> N/2 of 50 at alpha = 0.001) ~
+  1e-60), or the position standard deviation exceeds ``divergence_position_sigma_m``, the
+  vehicle's block is reset to the uninitialized prior (counted ``divergence_reset``) and
+  re-initialized by the snapshot least squares of its next GNSS epoch. The window's
+  mean NIS is available as :meth:`ClusterFilterBase.window_mean_nis` for diagnostics.
+
 Noise model: every SD measurement is treated as independent with variance 2 sigma^2
 (paper Table 1: undifferenced pseudorange sigma = 5 m). Two SDs of one satellite share
 the lead's error, so they are in truth correlated (covariance sigma^2); the paper's
@@ -53,11 +78,12 @@ filter, and this one, ignore that.
 from __future__ import annotations
 
 from abc import ABC, abstractmethod
+from collections import deque
 from dataclasses import dataclass, field
 
 import numpy as np
 from numpy.typing import NDArray
-from scipy.stats import norm
+from scipy.stats import chi2, norm
 
 from v2v.errors import UserError
 from v2v.estimation import models
@@ -153,6 +179,11 @@ class FilterConfig:
     uninitialized_variance: float = 1e8
     nonlinear_fraction: float = 0.1
     height_aiding_sigma_m: float | None = None
+    clock_jump_detection: bool = True
+    clock_reset_sigma_m: float = 100.0
+    divergence_window: int = 50
+    divergence_reject_fraction: float = 0.5
+    divergence_position_sigma_m: float = 1000.0
 
     def __post_init__(self) -> None:
         if not 0.0 < self.significance < 1.0:
@@ -164,6 +195,8 @@ class FilterConfig:
             b = getattr(self, name)
             if b is not None and not b[0] < b[1]:
                 raise UserError(f"needs min < max, got {b!r}", field=f"filter.{name}")
+        if self.divergence_window < 1 or not 0.0 < self.divergence_reject_fraction <= 1.0:
+            raise UserError("needs window >= 1 and 0 < reject fraction <= 1", field="filter.divergence_window")
 
     @property
     def gate_k(self) -> float:
@@ -212,6 +245,13 @@ def screen_blunders(h: F64, r: F64, sigma: float, k: float) -> NDArray[np.bool_]
     while the redundancy is >= 2 (with 1 a blunder is detectable but not identifiable).
     Returns the flagged mask.
     """
+    return screen_blunders_status(h, r, sigma, k)[0]
+
+
+def screen_blunders_status(h: F64, r: F64, sigma: float, k: float) -> tuple[NDArray[np.bool_], bool]:
+    """:func:`screen_blunders` plus whether it isolated every fault: True when it stopped
+    because all remaining ``|w| <= k``; False when it stopped at redundancy < 2 or at a
+    singular geometry (a fault may remain), or never had redundancy >= 2."""
     m, npar = h.shape
     flagged = np.zeros(m, dtype=bool)
     while (~flagged).sum() - npar >= 2:
@@ -219,16 +259,16 @@ def screen_blunders(h: F64, r: F64, sigma: float, k: float) -> NDArray[np.bool_]
         hu, ru = h[use], r[use]
         n_mat = hu.T @ hu
         if np.linalg.cond(n_mat) > 1e12:
-            break
+            return flagged, False
         dx = np.linalg.solve(n_mat, hu.T @ ru)
         e = ru - hu @ dx
         qe = 1.0 - np.einsum("ij,ij->i", hu, np.linalg.solve(n_mat, hu.T).T)
         w = np.abs(e) / (sigma * np.sqrt(np.maximum(qe, 1e-12)))
         j = int(np.argmax(w))
         if w[j] <= k:
-            break
+            return flagged, True
         flagged[use[j]] = True
-    return flagged
+    return flagged, False
 
 
 class ClusterFilterBase(ABC):
@@ -243,6 +283,8 @@ class ClusterFilterBase(ABC):
         self.config = config or FilterConfig()
         self._k = self.config.gate_k
         self.counters: dict[str, int] = {}
+        self.integrity_available: dict[str, bool] = {}
+        self._nis_window: dict[str, deque[tuple[float, bool]]] = {}
         self._vehicle_ready = {v: False for v in layout.vehicles}
         self._azimuth_ready = {v: False for v in layout.azimuth_vehicles}
         x0, p0 = self._prior(layout)
@@ -300,6 +342,8 @@ class ClusterFilterBase(ABC):
         self.layout = new
         self._vehicle_ready.pop(v, None)
         self._azimuth_ready.pop(v, None)
+        self._nis_window.pop(v, None)
+        self.integrity_available.pop(v, None)
         self._replace(x, P)
 
     # ----------------------------------------------------------------- predict
@@ -337,6 +381,10 @@ class ClusterFilterBase(ABC):
         lead_ep = epochs.get(lay.lead)
         infos: list[UpdateInfo] = []
         just_initialized: set[str] = set()
+        self.integrity_available = dict.fromkeys(lay.vehicles, False)
+        for v in lay.vehicles:  # covariance growth beyond any use: start again from this snapshot
+            if self._vehicle_ready[v] and self._position_sigma_m(v) > self.config.divergence_position_sigma_m:
+                self._reset_vehicle(v)
         per_vehicle: dict[str, tuple[GnssEpoch, NDArray, NDArray, F64]] = {}
         for v in lay.vehicles:
             ep = epochs.get(v)
@@ -357,6 +405,8 @@ class ClusterFilterBase(ABC):
                     just_initialized.add(v)
                 continue
             infos += self._sd_pseudoranges(v, geo, ep, lead_ep, iv, il)
+            if self._window_diverged(v):
+                self._reset_vehicle(v)  # re-initialized by the next epoch's snapshot
         if self.config.use_pair_sd:
             infos += self._pair_sds(epochs, lead_ep, geo)
         if self.config.use_doppler:
@@ -365,21 +415,101 @@ class ClusterFilterBase(ABC):
                     infos += self._sd_dopplers(v, geo, ep, lead_ep, iv, il)
         return infos
 
-    def _first_unflagged_order(self, rows: list[Row], z: F64, sigma: float, cols: int) -> NDArray[np.int64]:
-        """Elevation order with the highest-elevation w-test-clean measurement moved first."""
+    def _first_unflagged_order(self, rows: list[Row], z: F64, sigma: float,
+                               cols: int) -> tuple[NDArray[np.int64], NDArray[np.bool_], bool]:
+        """Elevation order with the highest-elevation w-test-clean measurement moved first.
+
+        Returns (order, excluded, isolated): ``excluded`` marks the flagged measurements when
+        more than one was flagged (all left out); ``isolated`` is the screen's
+        :func:`screen_blunders_status` (False when it could not run).
+        """
         m = len(rows)
         order = np.arange(m)
+        excluded = np.zeros(m, dtype=bool)
         if m < cols + 2:
-            return order
+            return order, excluded, False
         h = np.array([_compact(r, cols) for r in rows])
         res = z - np.array([r.h for r in rows])
-        flagged = screen_blunders(h, res, sigma, self._k)
+        flagged, isolated = screen_blunders_status(h, res, sigma, self._k)
         if flagged.any():
             for _ in range(int(flagged.sum())):
                 self._count("screened_first_update")
             first = int(np.flatnonzero(~flagged)[0]) if (~flagged).any() else 0
             order = np.concatenate([[first], np.delete(order, first)])
-        return order
+            if flagged.sum() > 1:
+                excluded = flagged
+        return order, excluded, isolated
+
+    def _excluded(self, kind: str, vehicles: tuple[str, ...], row: Row, z: float, r_var: float,
+                  prn: int) -> UpdateInfo | None:
+        """Report a measurement left out by the screen as rejected (x, P untouched)."""
+        nu = float(z - row.h)
+        P = self._get_P()
+        s = float(row.val @ P[np.ix_(row.idx, row.idx)] @ row.val) + r_var
+        if not (np.isfinite(nu) and np.isfinite(s) and s > 0.0):
+            self._count(f"nonfinite_{kind}")
+            return None
+        self._count(f"rejected_{kind}")
+        self._count("excluded_screened")
+        return UpdateInfo(kind, vehicles, nu, s, nu * nu / s, False, prn)
+
+    # ----------------------------------------------------------------- fault detection
+    def _clock_jump(self, v: str, rows: list[Row], z: F64, r_var: float) -> bool:
+        """Common-mode test of one vehicle's SD pseudorange innovations (module docstring);
+        on a detection re-initialize only its SD clock state at ``clk + median(nu)``."""
+        n = len(rows)
+        if n < 3:
+            return False
+        P = self._get_P()
+        nu = z - np.array([r.h for r in rows])
+        s = np.array([float(r.val @ P[np.ix_(r.idx, r.idx)] @ r.val) for r in rows]) + r_var
+        gate = self._k * np.sqrt(s)
+        fail = np.abs(nu) > gate
+        if 2 * int(fail.sum()) <= n or not (np.all(nu[fail] > 0.0) or np.all(nu[fail] < 0.0)):
+            return False
+        m = float(np.median(nu))
+        if 2 * int((np.abs(nu - m) <= gate).sum()) <= n:
+            return False
+        i = self.layout.clock(v)
+        clk = float(self._get_x()[i])
+        self._set_block(slice(i, i + 1), np.array([clk + m]), np.array([[self.config.clock_reset_sigma_m**2]]))
+        self._nis_window.pop(v, None)
+        self._count("clock_jump_detected")
+        return True
+
+    def _record_test(self, v: str, info: UpdateInfo) -> None:
+        w = self._nis_window.setdefault(v, deque(maxlen=self.config.divergence_window))
+        w.append((info.nis, info.accepted))
+
+    def window_mean_nis(self, v: str) -> float:
+        """Mean NIS of the last ``divergence_window`` SD-pseudorange tests of ``v`` (NaN if none)."""
+        w = self._nis_window.get(v)
+        return float(np.mean([n for n, _ in w])) if w else float("nan")
+
+    def window_nis_band(self, v: str, prob: float = 0.999) -> tuple[float, float]:
+        """Two-sided ``prob`` chi-square band of :meth:`window_mean_nis` under H0."""
+        n = len(self._nis_window.get(v, ())) or 1
+        lo, hi = chi2.ppf([(1.0 - prob) / 2.0, (1.0 + prob) / 2.0], n) / n
+        return float(lo), float(hi)
+
+    def _window_diverged(self, v: str) -> bool:
+        w = self._nis_window.get(v)
+        if w is None or len(w) < self.config.divergence_window:
+            return False
+        n_rej = sum(1 for _, ok in w if not ok)
+        return n_rej > self.config.divergence_reject_fraction * len(w)
+
+    def _position_sigma_m(self, v: str) -> float:
+        sl = self.layout.position(v)
+        return float(np.sqrt(max(float(np.trace(self._get_P()[sl, sl])), 0.0)))
+
+    def _reset_vehicle(self, v: str) -> None:
+        """Back to the uninitialized prior; the next GNSS snapshot re-initializes the block."""
+        self._set_block(self.layout.block(VEHICLE, v), np.zeros(8),
+                        np.eye(8) * self.config.uninitialized_variance)
+        self._vehicle_ready[v] = False
+        self._nis_window.pop(v, None)
+        self._count("divergence_reset")
 
     def _sd_pseudoranges(self, v: str, geo: GnssGeometry, ep: GnssEpoch, lead_ep: GnssEpoch,
                          iv: NDArray, il: NDArray) -> list[UpdateInfo]:
@@ -388,15 +518,23 @@ class ClusterFilterBase(ABC):
         z = ep.pseudorange_m[iv] - lead_ep.pseudorange_m[il]
         rows = [models.sd_pseudorange(x, lay, geo, v, ep.sv_pos_ecef_m[i], lead_ep.sv_pos_ecef_m[j])
                 for i, j in zip(iv, il, strict=True)]
-        order = self._first_unflagged_order(rows, z, np.sqrt(self.config.noise.sd_pseudorange_var_m2), 4)
-        out = []
         r_var = self.config.noise.sd_pseudorange_var_m2
+        if self.config.clock_jump_detection and self._clock_jump(v, rows, z, r_var):
+            rows = [models.sd_pseudorange(self._get_x(), lay, geo, v, ep.sv_pos_ecef_m[i], lead_ep.sv_pos_ecef_m[j])
+                    for i, j in zip(iv, il, strict=True)]
+        order, excluded, isolated = self._first_unflagged_order(rows, z, np.sqrt(r_var), 4)
+        self.integrity_available[v] = isolated
+        out = []
         for o in order:
             i, j = iv[o], il[o]
             row = models.sd_pseudorange(self._get_x(), lay, geo, v, ep.sv_pos_ecef_m[i], lead_ep.sv_pos_ecef_m[j])
-            info = self._scalar(KIND_SD_PR, (v,), row, float(z[o]), r_var, prn=int(ep.prn[i]))
+            if excluded[o]:
+                info = self._excluded(KIND_SD_PR, (v,), row, float(z[o]), r_var, int(ep.prn[i]))
+            else:
+                info = self._scalar(KIND_SD_PR, (v,), row, float(z[o]), r_var, prn=int(ep.prn[i]))
             if info is not None:
                 out.append(info)
+                self._record_test(v, info)
         return out
 
     def _sd_dopplers(self, v: str, geo: GnssGeometry, ep: GnssEpoch, lead_ep: GnssEpoch,
@@ -417,11 +555,15 @@ class ClusterFilterBase(ABC):
         x = self._get_x()
         rows = [row_at(x, o) for o in range(len(iv))]
         # screen on (velocity, drift): the last 4 entries of the row
-        order = self._first_unflagged_order(rows, z, np.sqrt(r_var), 4)
+        order, excluded, _ = self._first_unflagged_order(rows, z, np.sqrt(r_var), 4)
         out = []
         for o in order:
-            info = self._scalar(KIND_SD_DOPPLER, (v,), row_at(self._get_x(), o), float(z[o]), r_var,
-                                prn=int(ep.prn[iv[o]]))
+            if excluded[o]:
+                info = self._excluded(KIND_SD_DOPPLER, (v,), row_at(self._get_x(), o), float(z[o]), r_var,
+                                      int(ep.prn[iv[o]]))
+            else:
+                info = self._scalar(KIND_SD_DOPPLER, (v,), row_at(self._get_x(), o), float(z[o]), r_var,
+                                    prn=int(ep.prn[iv[o]]))
             if info is not None:
                 out.append(info)
         return out
