@@ -169,6 +169,11 @@ class OcclusionGeometry:
         segment cannot give an excess below ``E``.
     """
 
+    #: Up to this many (antenna, wall) pairs per sky query, echo candidates are screened
+    #: over all walls at once instead of through the spatial index (same result, faster
+    #: for small worlds).
+    dense_pairs_max = 200_000
+
     def __init__(self, world: World, *, max_reflection_excess_m: float = 100.0):
         self.world = world
         self.max_reflection_excess_m = float(max_reflection_excess_m)
@@ -200,6 +205,7 @@ class OcclusionGeometry:
         self._w_n = (
             np.column_stack([self._w_dir[:, 1], -self._w_dir[:, 0]]) if self._w_len.size else np.zeros((0, 2))
         )
+        self._w_nx, self._w_ny = self._w_n[:, 0].copy(), self._w_n[:, 1].copy()
         self._wall_tree = shapely.STRtree(shapely.linestrings(np.stack([self._wa, self._wb], axis=1)))
         self._b_polys = np.array(
             [shapely.make_valid(shapely.Polygon(b.footprint_xy_m)) for b in bl], dtype=object
@@ -262,10 +268,20 @@ class OcclusionGeometry:
         q = np.flatnonzero(below)
         qa = p0[q, :2] + ta[q, None] * d[q]
         qb = p0[q, :2] + tb[q, None] * d[q]
-        si, wi = _query_pairs(
-            self._wall_tree, shapely.linestrings(np.stack([qa, qb], axis=1)), predicate="intersects"
-        )
-        si = q[si]
+        # Index candidates by bounding box, then the closed-segment intersection test by
+        # orientations (what GEOS ``intersects`` decides, up to float rounding of an
+        # orientation; a pair decided differently has an end point within rounding of the
+        # other segment: at a leg's end on its reflecting wall it is skipped either way).
+        si, wi = _query_pairs(self._wall_tree, shapely.linestrings(np.stack([qa, qb], axis=1)))
+        ax, ay, bx, by = qa[si, 0], qa[si, 1], qb[si, 0], qb[si, 1]
+        cx, cy, ex, ey = self._wa[wi, 0], self._wa[wi, 1], self._wb[wi, 0], self._wb[wi, 1]
+        o1 = (bx - ax) * (cy - ay) - (by - ay) * (cx - ax)
+        o2 = (bx - ax) * (ey - ay) - (by - ay) * (ex - ax)
+        o3 = (ex - cx) * (ay - cy) - (ey - cy) * (ax - cx)
+        o4 = (ex - cx) * (by - cy) - (ey - cy) * (bx - cx)
+        meet = (np.minimum(o1, o2) <= 0.0) & (np.maximum(o1, o2) >= 0.0)
+        meet &= (np.minimum(o3, o4) <= 0.0) & (np.maximum(o3, o4) >= 0.0)
+        si, wi = q[si[meet]], wi[meet]
         roof_g: list[NDArray[np.int64]] = []
         roof_b: list[NDArray[np.int64]] = []
         if si.size:
@@ -326,8 +342,12 @@ class OcclusionGeometry:
     def _legs_clear(self, a: FloatArray, r: FloatArray, b: FloatArray) -> NDArray[np.bool_]:
         """Both legs a->r and r->b free of buildings; r lies on the reflecting wall."""
         t1, _ = self._building_hits(a, r, skip_end_m=_REFLECTION_POINT_TOL_M, check_end_inside=False)
-        t2, _ = self._building_hits(r, b, skip_start_m=_REFLECTION_POINT_TOL_M, check_start_inside=False)
-        return ~np.isfinite(t1) & ~np.isfinite(t2)
+        clear = ~np.isfinite(t1)
+        # The long leg only where the short one is clear (each segment is tested on its own).
+        idx = np.flatnonzero(clear)
+        t2, _ = self._building_hits(r[idx], b[idx], skip_start_m=_REFLECTION_POINT_TOL_M, check_start_inside=False)
+        clear[idx] = ~np.isfinite(t2)
+        return clear
 
     def _best_reflection(
         self,
@@ -447,7 +467,7 @@ class OcclusionGeometry:
 
         echo = np.full(n, np.nan)
         if blocked.any() and self._w_len.size:
-            echo = self._sky_echo(xa, az, el_c, blocked, max_dist_m)
+            echo = self._sky_echo(ants, ai, az, el_c, blocked, max_dist_m)
         return SkyResult(
             blocked=blocked,
             blocker_id=blocker_id.astype(str),
@@ -507,36 +527,100 @@ class OcclusionGeometry:
         return np.maximum(path, 0.0), np.maximum(loss, 0.0)
 
     def _sky_echo(
-        self, xa: FloatArray, az: FloatArray, el: FloatArray, blocked: NDArray[np.bool_], max_dist_m: float
+        self,
+        ants: FloatArray,
+        ai: NDArray[np.int64],
+        az: FloatArray,
+        el: FloatArray,
+        blocked: NDArray[np.bool_],
+        max_dist_m: float,
     ) -> FloatArray:
-        """Shortest valid wall-echo excess of each blocked ray; ``xa`` (n, 3) is each ray's antenna."""
+        """Shortest valid wall-echo excess of each blocked ray; ray ``i`` starts at ``ants[ai[i]]``.
+
+        Candidate walls are screened per antenna first (antenna in front of the wall, wall
+        above the antenna, ``d_w tan(el) < h_w - z_a`` for the antenna's lowest ray: exact
+        necessary conditions), then each ray is paired only with its antenna's walls sorted
+        by ``d_w / (h_w - z_a)`` up to its own bound, and the exact per-ray tests of the
+        module docstring select the valid reflections. A wall holding a valid reflection
+        point R lies within ``(h_max - z_a) / tan(el)`` of the antenna (``z_R < h_w``), so the
+        spatial-index window used for large worlds is a superset as well.
+        """
         n = az.size
         rays = np.flatnonzero(blocked)
         ce, se = np.cos(el[rays]), np.sin(el[rays])
         tan_el = se / ce
-        xr = xa[rays]
-        # The reflection point is at horizontal distance tau cos(el) >= d_w from the antenna
+        ray_ant = ai[rays]
+        xr = ants[ray_ant]
+        # The reflection point R is at horizontal distance tau cos(el) >= d_w from the antenna
         # and height z_a + tau sin(el) < h_w: only walls within (h_max - z_a) / tan(el).
         radius = np.minimum(max_dist_m, (self._h_max - xr[:, 2]) / np.maximum(tan_el, 1e-12))
-        # Square windows (cheap supersets of the discs); the tests below are exact.
-        windows = shapely.box(xr[:, 0] - radius, xr[:, 1] - radius, xr[:, 0] + radius, xr[:, 1] + radius)
-        ri, wi = _query_pairs(self._wall_tree, windows)
-        delta = np.einsum("ij,ij->i", xr[ri, :2] - self._wa[wi], self._w_n[wi])
-        keep = (delta > 0.0) & (self._w_h[wi] > xr[ri, 2])
-        ri, wi, delta = ri[keep], wi[keep], delta[keep]
+        ua, ray_u = np.unique(ray_ant, return_inverse=True)
+        order = np.argsort(ray_u, kind="stable")
+        first = np.flatnonzero(np.r_[True, ray_u[order][1:] != ray_u[order][:-1]])
+        rad_u = np.maximum.reduceat(np.abs(radius[order]), first)
+        tan_lo = np.minimum.reduceat(tan_el[order], first)
+        xu = ants[ua]
+        # Antenna in front of the wall (d_w > 0), wall above the antenna, and the test on d_w
+        # below for the antenna's lowest ray (float products are monotonic: only walls that
+        # every ray of the antenna rejects are removed).
+        wa, wn = self._wa, self._w_n
+        if ua.size * self._w_len.size <= self.dense_pairs_max:
+            # Small worlds: every (antenna, wall) pair at once; the exact tests select.
+            delta_d = (xu[:, 0, None] - wa[None, :, 0]) * wn[None, :, 0] + (xu[:, 1, None] - wa[None, :, 1]) * wn[
+                None, :, 1
+            ]
+            hz_d = self._w_h[None, :] - xu[:, 2, None]
+            keep = (delta_d > 0.0) & (hz_d > 0.0) & (delta_d * tan_lo[:, None] < hz_d)
+            uj, wj = np.nonzero(keep)
+            delta_u, hz_u = delta_d[keep], hz_d[keep]
+        else:
+            # Square windows (supersets of the discs) per antenna; the tests below are exact.
+            uj, wj = _query_pairs(
+                self._wall_tree,
+                shapely.box(xu[:, 0] - rad_u, xu[:, 1] - rad_u, xu[:, 0] + rad_u, xu[:, 1] + rad_u),
+            )
+            delta_u = (xu[uj, 0] - wa[wj, 0]) * wn[wj, 0] + (xu[uj, 1] - wa[wj, 1]) * wn[wj, 1]
+            hz_u = self._w_h[wj] - xu[uj, 2]
+            keep = (delta_u > 0.0) & (hz_u > 0.0) & (delta_u * tan_lo[uj] < hz_u)
+            uj, wj, delta_u, hz_u = uj[keep], wj[keep], delta_u[keep], hz_u[keep]
+        # Per antenna, walls by d_w / (h_w - z_a); a ray of elevation el needs that ratio
+        # below 1 / tan(el) (test below): pair each ray with the prefix of its antenna's walls
+        # up to a slightly larger bound (a superset; the exact test follows).
+        # One ascending key per (antenna, ratio) block (fl(+) is monotonic, so a key above a
+        # ray's threshold has a ratio above its bound).
+        key = uj * 4.0 + np.minimum(delta_u / hz_u, 2.0)
+        srt = np.argsort(key, kind="stable")
+        uj, wj, delta_u, hz_u, key = uj[srt], wj[srt], delta_u[srt], hz_u[srt], key[srt]
+        block = np.searchsorted(uj, np.arange(ua.size + 1))
+        thr = ray_u * 4.0 + np.minimum((1.0 + 1e-9) / tan_el, 2.0)
+        rep = np.searchsorted(key, thr, side="right") - block[ray_u]
+        ray_pair = np.repeat(np.arange(rays.size), rep)
+        offs = np.arange(ray_pair.size) - np.repeat(np.cumsum(rep) - rep, rep)
+        pair = block[ray_u[ray_pair]] + offs
+        ri = ray_pair
+        wi = wj[pair]
         if wi.size == 0:
             return np.full(n, np.nan)
-        s_h = np.column_stack([ce * np.sin(az[rays]), ce * np.cos(az[rays])])  # (r, 2)
-        c = np.einsum("ij,ij->i", s_h[ri], self._w_n[wi])  # s . n
+        s_hx, s_hy = ce * np.sin(az[rays]), ce * np.cos(az[rays])
+        nx, ny = self._w_nx[wi], self._w_ny[wi]
+        c = s_hx[ri] * nx + s_hy[ri] * ny  # s . n
         # Necessary for z_R < h_w: d_w tan(el) <= tau cos(el) tan(el) = z_R - z_a < h_w - z_a.
-        ok = (c > 0.0) & (delta * tan_el[ri] < self._w_h[wi] - xr[ri, 2])
-        ri, wi, c, dw = ri[ok], wi[ok], c[ok], delta[ok]
+        ok = (c > 0.0) & (delta_u[pair] * tan_el[ri] < hz_u[pair])
+        ri, wi, c, dw, nx, ny = ri[ok], wi[ok], c[ok], delta_u[pair[ok]], nx[ok], ny[ok]
         tau = dw / c
-        r_h = xr[ri, :2] + tau[:, None] * (s_h[ri] - 2.0 * c[:, None] * self._w_n[wi])
+        # R = x_a + tau (s - 2 (s . n) n), on the wall segment (one coordinate per array).
+        rx = xr[ri, 0] + tau * (s_hx[ri] - 2.0 * c * nx)
+        ry = xr[ri, 1] + tau * (s_hy[ri] - 2.0 * c * ny)
+        s_wall = ((rx - self._wa[wi, 0]) * self._w_dir[wi, 0] + (ry - self._wa[wi, 1]) * self._w_dir[wi, 1]) / (
+            self._w_len[wi]
+        )
+        ok = (s_wall >= 0.0) & (s_wall <= 1.0)
+        ri, wi, c, dw, tau, rx, ry = ri[ok], wi[ok], c[ok], dw[ok], tau[ok], rx[ok], ry[ok]
         z_r = xr[ri, 2] + tau * se[ri]
-        s_wall = np.einsum("ij,ij->i", r_h - self._wa[wi], self._w_dir[wi]) / self._w_len[wi]
-        ok = (s_wall >= 0.0) & (s_wall <= 1.0) & (z_r < self._w_h[wi]) & (tau * ce[ri] <= max_dist_m)
-        ri, c, dw, r_h, z_r = ri[ok], c[ok], dw[ok], r_h[ok], z_r[ok]
+        ok = (z_r < self._w_h[wi]) & (tau * ce[ri] <= max_dist_m)
+        ri, c, dw, z_r = ri[ok], c[ok], dw[ok], z_r[ok]
+        r_h = np.column_stack([rx[ok], ry[ok]])
+        s_h = np.column_stack([s_hx, s_hy])  # (r, 2)
         excess = 2.0 * dw * c
         r3 = np.column_stack([r_h, z_r])
         a3 = xr[ri]

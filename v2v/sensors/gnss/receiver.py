@@ -234,7 +234,7 @@ class GnssReceiver:
             noise = noise_phase = noise_dopp = zeros
         self._last_t[prn] = t_s
 
-        nlos_m = np.where(nlos, np.nan_to_num(echo[idx], nan=0.0), 0.0)
+        nlos_m = np.where(nlos, echo[idx], 0.0)  # nlos implies a finite echo (has_echo)
         rho = geom.range_m[idx]
         errors = {
             "clock": np.full(n, self.clock.bias_m),

@@ -1,0 +1,130 @@
+"""GNSS measurement synthesis speed: milliseconds per receiver-epoch, open sky vs. urban canyon.
+
+Configuration (issue 7): a cluster of ``--vehicles`` vehicles on lanes 0 and 1, 10 Hz GNSS,
+no estimation (``solutions=[]``), replay off. Each network runs in a fresh process
+(libsumo: one simulation per process), one after another, so the numbers are single-core
+wall times measured in this one invocation. The GNSS time is the run's own
+``timing_s["gnss"]`` (light-time geometry, common errors, sky queries and per-receiver
+synthesis); the sky column is the part spent in ``OcclusionGeometry.sky_many`` (building
+blocking, canopy, wall echoes). A receiver-epoch is one vehicle at one GNSS epoch.
+
+    .venv/bin/python benchmarks/bench_synthesis.py [--nets open_highway urban_canyon]
+        [--vehicles 20] [--duration 60] [--out DIR]
+
+Prints a table (and writes ``synthesis.md`` / ``synthesis.csv`` with ``--out``); nothing is
+asserted.
+"""
+
+from __future__ import annotations
+
+import argparse
+import csv
+import json
+import subprocess
+import sys
+import tempfile
+from pathlib import Path
+
+CASE = r"""
+import json, sys, time
+from v2v.config.scenario import load_scenario
+from v2v.run import run_scenario
+from v2v.sensors.gnss import receiver
+from v2v.world import occlusion
+
+net, n, dur, out = sys.argv[1], int(sys.argv[2]), float(sys.argv[3]), sys.argv[4]
+stats = {"receiver_epochs": 0, "sky_s": 0.0, "rays": 0}
+epoch = receiver.GnssSynthesizer.epoch
+sky_many = occlusion.OcclusionGeometry.sky_many
+
+
+def counted_epoch(self, t_s, vehicles):
+    stats["receiver_epochs"] += len(vehicles)
+    return epoch(self, t_s, vehicles)
+
+
+def timed_sky_many(self, *args, **kwargs):
+    t0 = time.perf_counter()
+    res = sky_many(self, *args, **kwargs)
+    stats["sky_s"] += time.perf_counter() - t0
+    stats["rays"] += res.blocked.size
+    return res
+
+
+receiver.GnssSynthesizer.epoch = counted_epoch
+occlusion.OcclusionGeometry.sky_many = timed_sky_many
+sc = load_scenario(None, [
+    f'network.name="{net}"', f"clusters.0.vehicles={n}", "clusters.0.lanes=[0,1]", f"duration_s={dur}",
+    "solutions=[]",
+])
+r = run_scenario(sc, out, quiet=True, replay=False)
+s = r.summary
+stats.update(gnss_s=s["timing_s"]["gnss"], simulated_s=s["simulated_s"], nlos_fraction=s["gnss"]["nlos_fraction"])
+print(json.dumps(stats))
+"""
+
+COLUMNS = ("network", "vehicles", "simulated_s", "receiver_epochs", "rays", "gnss_s", "gnss_ms_per_rx_epoch",
+           "sky_ms_per_rx_epoch", "other_ms_per_rx_epoch", "nlos_fraction")
+
+
+def run_case(net: str, n: int, duration: float, out: Path) -> dict:
+    p = subprocess.run([sys.executable, "-c", CASE, net, str(n), str(duration), str(out)],
+                       capture_output=True, text=True, check=True)
+    r = json.loads(p.stdout.strip().splitlines()[-1])
+    k = max(r["receiver_epochs"], 1)
+    return {
+        "network": net,
+        "vehicles": n,
+        "simulated_s": r["simulated_s"],
+        "receiver_epochs": r["receiver_epochs"],
+        "rays": r["rays"],
+        "gnss_s": r["gnss_s"],
+        "gnss_ms_per_rx_epoch": 1e3 * r["gnss_s"] / k,
+        "sky_ms_per_rx_epoch": 1e3 * r["sky_s"] / k,
+        "other_ms_per_rx_epoch": 1e3 * (r["gnss_s"] - r["sky_s"]) / k,
+        "nlos_fraction": r["nlos_fraction"],
+    }
+
+
+def markdown(rows: list[dict]) -> str:
+    head = "| " + " | ".join(COLUMNS) + " |\n|" + "---|" * len(COLUMNS) + "\n"
+    fmt = {"simulated_s": "{:.1f}", "gnss_s": "{:.2f}", "nlos_fraction": "{:.3f}"}
+
+    def cell(key: str, v) -> str:
+        if key.endswith("_ms_per_rx_epoch"):
+            return f"{v:.3f}"
+        return fmt.get(key, "{}").format(v)
+
+    return head + "".join("| " + " | ".join(cell(c, r[c]) for c in COLUMNS) + " |\n" for r in rows)
+
+
+def main(argv: list[str] | None = None) -> int:
+    ap = argparse.ArgumentParser(description=__doc__.splitlines()[0])
+    ap.add_argument("--nets", nargs="+", default=["open_highway", "urban_canyon"])
+    ap.add_argument("--vehicles", type=int, default=20)
+    ap.add_argument("--duration", type=float, default=60.0)
+    ap.add_argument("--out", type=Path, default=None, help="write synthesis.md and synthesis.csv here")
+    args = ap.parse_args(argv)
+    rows = []
+    with tempfile.TemporaryDirectory() as tmp:
+        for net in args.nets:
+            r = run_case(net, args.vehicles, args.duration, Path(tmp) / net)
+            rows.append(r)
+            print(f"{net:14s} N={r['vehicles']:3d} {r['receiver_epochs']:6d} receiver-epochs  GNSS {r['gnss_s']:6.2f} s  "
+                  f"= {r['gnss_ms_per_rx_epoch']:.3f} ms/rx-epoch (sky {r['sky_ms_per_rx_epoch']:.3f}, "
+                  f"other {r['other_ms_per_rx_epoch']:.3f})  NLOS {r['nlos_fraction']:.2f}", flush=True)
+    table = markdown(rows)
+    print()
+    print(table, end="")
+    if args.out is not None:
+        args.out.mkdir(parents=True, exist_ok=True)
+        (args.out / "synthesis.md").write_text(table)
+        with open(args.out / "synthesis.csv", "w", newline="") as f:
+            w = csv.DictWriter(f, fieldnames=COLUMNS)
+            w.writeheader()
+            w.writerows(rows)
+    return 0
+
+
+if __name__ == "__main__":
+    raise SystemExit(main())
