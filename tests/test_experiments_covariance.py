@@ -3,31 +3,12 @@ predicted sigmas it writes follow the geometry of Petovello et al. section 3.3."
 
 from __future__ import annotations
 
-import importlib.util
-import sys
-from pathlib import Path
-
 import numpy as np
 import pandas as pd
 import pytest
+from expkit import assert_png, load_experiment
 
 pytestmark = pytest.mark.sumo
-EXPERIMENTS = Path(__file__).resolve().parents[1] / "experiments"
-
-
-def _load(name: str):
-    path = EXPERIMENTS / f"{name}.py"
-    spec = importlib.util.spec_from_file_location(f"_exp_{name}", path)
-    assert spec is not None and spec.loader is not None
-    mod = importlib.util.module_from_spec(spec)
-    sys.modules[spec.name] = mod
-    spec.loader.exec_module(mod)
-    return mod
-
-
-def _png(path: Path) -> None:
-    assert path.is_file() and path.stat().st_size > 10_000, f"{path.name} missing or empty"
-    assert path.read_bytes()[:8] == b"\x89PNG\r\n\x1a\n"
 
 
 def test_covariance_analysis_quick(tmp_path):
@@ -53,7 +34,7 @@ def test_covariance_analysis_quick(tmp_path):
       Doppler holding the velocity), across-track still bearing-sized, and the true error
       inside 3 sigma.
     """
-    mod = _load("covariance_analysis")
+    mod = load_experiment("covariance_analysis")
     assert mod.main(["--quick", "--out", str(tmp_path)]) == 0
 
     per = pd.read_csv(tmp_path / "covariance_vs_vehicles.csv")
@@ -88,5 +69,5 @@ def test_covariance_analysis_quick(tmp_path):
     assert both["sigma_h_first_after_m"] < 1.0  # UWB + bearings carried it: no re-convergence from 5 m
 
     for name in ("sigma_vs_vehicles.png", "gnss_outage.png"):
-        _png(tmp_path / name)
+        assert_png(tmp_path / name)
     assert "| vehicles | lanes | GPS along |" in (tmp_path / "covariance_vs_vehicles.md").read_text()

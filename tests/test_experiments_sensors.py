@@ -6,35 +6,17 @@ package) and its ``main`` called with an output folder; the checks read the writ
 
 from __future__ import annotations
 
-import importlib.util
 import json
-import sys
-from pathlib import Path
 
 import pandas as pd
 import pytest
+from expkit import assert_png, load_experiment
 
 pytestmark = pytest.mark.sumo
-EXPERIMENTS = Path(__file__).resolve().parents[1] / "experiments"
-
-
-def _load(name: str):
-    path = EXPERIMENTS / f"{name}.py"
-    spec = importlib.util.spec_from_file_location(f"_exp_{name}", path)
-    assert spec is not None and spec.loader is not None
-    mod = importlib.util.module_from_spec(spec)
-    sys.modules[spec.name] = mod
-    spec.loader.exec_module(mod)
-    return mod
-
-
-def _png(path: Path) -> None:
-    assert path.is_file() and path.stat().st_size > 10_000, f"{path.name} missing or empty"
-    assert path.read_bytes()[:8] == b"\x89PNG\r\n\x1a\n"
 
 
 def test_gnss_environments_quick(tmp_path):
-    mod = _load("gnss_environments")
+    mod = load_experiment("gnss_environments")
     assert mod.main(["--quick", "--out", str(tmp_path), "--nets", "open_highway", "urban_canyon"]) == 0
     t = pd.read_csv(tmp_path / "gnss_environments.csv").set_index("net")
     hw, cy = t.loc["open_highway"], t.loc["urban_canyon"]
@@ -53,12 +35,12 @@ def test_gnss_environments_quick(tmp_path):
     pv = pd.read_csv(tmp_path / "gnss_per_vehicle.csv")
     assert set(pv["net"]) == {"open_highway", "urban_canyon"} and len(pv) == 6
     for name in ("gnss_sats_and_nlos.png", "gnss_skyplot_open_highway.png", "gnss_skyplot_urban_canyon.png"):
-        _png(tmp_path / name)
+        assert_png(tmp_path / name)
     assert "| quantity | open_highway | urban_canyon |" in (tmp_path / "gnss_environments.md").read_text()
 
 
 def test_paper_uwb_errors_quick(tmp_path):
-    mod = _load("paper_uwb_errors")
+    mod = load_experiment("paper_uwb_errors")
     assert mod.main(["--quick", "--out", str(tmp_path)]) == 0
     fits = pd.read_csv(tmp_path / "uwb_pair_fits.csv")
     assert len(fits) >= 2
@@ -78,11 +60,11 @@ def test_paper_uwb_errors_quick(tmp_path):
     summary = json.loads((tmp_path / "uwb_pair_fits.json").read_text())["summary"]
     assert summary["pooled_scale_ppm"] == pytest.approx(summary["mean_model_scale_ppm"], abs=600.0)
     for name in ("uwb_errors_fig16_17.png", "uwb_error_vs_range.png", "uwb_error_vs_10log_d2.png"):
-        _png(tmp_path / name)
+        assert_png(tmp_path / name)
 
 
 def test_uwb_nlos_canyon_quick(tmp_path):
-    mod = _load("uwb_nlos_canyon")
+    mod = load_experiment("uwb_nlos_canyon")
     assert mod.main(["--quick", "--out", str(tmp_path)]) == 0
     r = json.loads((tmp_path / "uwb_nlos_canyon.json").read_text())
     f = r["census_fraction"]
@@ -99,4 +81,4 @@ def test_uwb_nlos_canyon_quick(tmp_path):
     assert r["bearing"]["availability"] == pytest.approx(r["bearing_expected_from_census"], abs=0.03)
     census = pd.read_csv(tmp_path / "uwb_link_census.csv")
     assert (census["distance_m"] <= 100.0).all()
-    _png(tmp_path / "uwb_nlos_canyon.png")
+    assert_png(tmp_path / "uwb_nlos_canyon.png")
