@@ -11,13 +11,21 @@ state / covariance difference between the engines relative to each quantity's sc
 (``|a - b| / (|b| + sigma)``; they must agree to 1e-9: tests/test_engines_agree.py).
 
 Plain Python, no asserts: numbers depend on the machine; compare ratios, not seconds.
+The reference shares the sequencing code of the base class (row building, screening,
+second-order terms), so speed-ups there make both engines faster and the ratio measures
+only the engine algebra; compare the production column against an earlier run too.
+``--profile N`` prints the cProfile top functions of the production engine at N vehicles
+(where the remaining time goes) instead of the table.
 
     .venv/bin/python benchmarks/bench_filter.py [--sizes 3 10 20] [--duration 5] [--repeat 3]
+    .venv/bin/python benchmarks/bench_filter.py --profile 10
 """
 
 from __future__ import annotations
 
 import argparse
+import cProfile
+import pstats
 import time
 
 import numpy as np
@@ -60,7 +68,17 @@ def main(argv: list[str] | None = None) -> int:
     ap.add_argument("--duration", type=float, default=5.0, help="simulated seconds per run (10 Hz epochs)")
     ap.add_argument("--repeat", type=int, default=3, help="timing repeats (best is reported)")
     ap.add_argument("--seed", type=int, default=1)
+    ap.add_argument("--profile", type=int, metavar="N", help="profile the production engine at N vehicles")
     args = ap.parse_args(argv)
+
+    if args.profile is not None:
+        cfg, scn, lay, eps = _setup(args.profile, args.duration, args.seed)
+        prof = cProfile.Profile()
+        prof.enable()
+        _run(ClusterEkf, cfg, lay, eps, scn.dt_s)
+        prof.disable()
+        pstats.Stats(prof).sort_stats("tottime").print_stats(20)
+        return 0
 
     print(f"{'N':>3} {'states':>6} {'upd/ep':>7} {'prod ms/ep':>11} {'ref ms/ep':>10} {'speed-up':>9} "
           f"{'max dx rel':>11} {'max dP rel':>11}")

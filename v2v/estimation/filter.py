@@ -77,6 +77,7 @@ filter, and this one, ignore that.
 
 from __future__ import annotations
 
+import math
 from abc import ABC, abstractmethod
 from collections import deque
 from dataclasses import dataclass, field
@@ -223,18 +224,50 @@ def scalar_update(x: F64, P: F64, idx: NDArray[np.int64], val: F64, innovation: 
 
     ``p = P h^T`` uses only the columns ``idx`` (O(n k)); ``S = h p + r`` (thesis eq. 3.23);
     rejected without touching x, P if ``|nu| > gate_k sqrt(S)`` (eq. 3.27) or anything is
-    non-finite; else ``x += p nu / S``, ``P -= p p^T / S`` (= ``k k^T S`` with
-    ``k = p / S``: eq. 3.16-3.18 in a form that keeps P exactly symmetric).
+    non-finite; else ``x += p nu / S``, ``P -= q q^T`` with ``q = p / sqrt(S)`` (= ``k k^T S``
+    with ``k = p / S``: eq. 3.16-3.18 in a form that keeps P exactly symmetric). The O(n^2)
+    rank-1 step runs in place through BLAS ``dger`` (one pass over P, no temporaries) when
+    :func:`_symmetric_blas_rank1` found it exactly symmetric, else through numpy.
     """
     p = P[:, idx] @ val
     s = float(val @ p[idx]) + r_var
-    if not (np.isfinite(innovation) and np.isfinite(s) and s > 0.0 and np.all(np.isfinite(p))):
+    innovation = float(innovation)
+    if not (math.isfinite(innovation) and math.isfinite(s) and s > 0.0 and np.isfinite(p).all()):
         return s, False
-    if gate_k is not None and abs(innovation) > gate_k * np.sqrt(s):
+    if gate_k is not None and abs(innovation) > gate_k * math.sqrt(s):
         return s, False
     x += p * (innovation / s)
-    P -= np.outer(p, p) * (1.0 / s)  # p_i p_j == p_j p_i exactly: P stays symmetric
+    # P -= q q^T with q = p / sqrt(S): q_i q_j == q_j q_i exactly, so P stays symmetric
+    q = p * math.sqrt(1.0 / s)
+    if _DGER is not None and P.dtype == np.float64 and P.flags.c_contiguous and P.flags.writeable:
+        out = _DGER(1.0, -q, q, a=P.T, overwrite_a=1)  # BLAS rank-1, in place: one pass over P
+        if not np.may_share_memory(out, P):  # pragma: no cover - f2py made a copy
+            P[...] = out.T
+    else:
+        P -= np.multiply.outer(q, q)
     return s, True
+
+
+def _symmetric_blas_rank1():
+    """scipy's BLAS ``dger`` when it keeps a symmetric matrix exactly symmetric under
+    ``A -= q q^T`` (checked once on odd sizes that exercise the kernels' tails), else None."""
+    try:
+        from scipy.linalg.blas import dger
+    except ImportError:  # pragma: no cover
+        return None
+    rng = np.random.default_rng(12345)
+    for n in (1, 3, 7, 13, 37, 77, 157, 401):
+        a = rng.normal(size=(n, n))
+        a = a + a.T
+        for _ in range(3):
+            q = rng.normal(size=n) * 10.0 ** rng.uniform(-3.0, 3.0)
+            out = dger(1.0, -q, q, a=a.T, overwrite_a=1)
+            if not np.may_share_memory(out, a) or not np.array_equal(a, a.T):
+                return None
+    return dger
+
+
+_DGER = _symmetric_blas_rank1()
 
 
 def screen_blunders(h: F64, r: F64, sigma: float, k: float) -> NDArray[np.bool_]:
@@ -258,11 +291,14 @@ def screen_blunders_status(h: F64, r: F64, sigma: float, k: float) -> tuple[NDAr
         use = np.flatnonzero(~flagged)
         hu, ru = h[use], r[use]
         n_mat = hu.T @ hu
-        if np.linalg.cond(n_mat) > 1e12:
+        sv = np.linalg.svd(n_mat, compute_uv=False)
+        with np.errstate(divide="ignore", invalid="ignore"):
+            cond = sv[0] / sv[-1]  # = np.linalg.cond(n_mat) (0/0 -> NaN counts as singular, as there)
+        if not cond <= 1e12:
             return flagged, False
-        dx = np.linalg.solve(n_mat, hu.T @ ru)
-        e = ru - hu @ dx
-        qe = 1.0 - np.einsum("ij,ij->i", hu, np.linalg.solve(n_mat, hu.T).T)
+        sol = np.linalg.solve(n_mat, hu.T)  # N^-1 H^T: one factorization for dx and Q_e
+        e = ru - hu @ (sol @ ru)
+        qe = 1.0 - np.einsum("ij,ji->i", hu, sol)
         w = np.abs(e) / (sigma * np.sqrt(np.maximum(qe, 1e-12)))
         j = int(np.argmax(w))
         if w[j] <= k:
@@ -358,7 +394,7 @@ class ClusterFilterBase(ABC):
     def _scalar(self, kind: str, vehicles: tuple[str, ...], row: Row, z: float, r_var: float, *,
                 wrap: bool = False, test: bool = True, prn: int = -1) -> UpdateInfo | None:
         nu, s, accepted = self._apply(row, z, r_var, wrap, test)
-        if not (np.isfinite(nu) and np.isfinite(s) and s > 0.0):
+        if not (math.isfinite(nu) and math.isfinite(s) and s > 0.0):
             self._count(f"nonfinite_{kind}")
             return None
         if not accepted:
@@ -415,21 +451,23 @@ class ClusterFilterBase(ABC):
                     infos += self._sd_dopplers(v, geo, ep, lead_ep, iv, il)
         return infos
 
-    def _first_unflagged_order(self, rows: list[Row], z: F64, sigma: float,
+    def _first_unflagged_order(self, h_pred: F64, val: F64, z: F64, sigma: float,
                                cols: int) -> tuple[NDArray[np.int64], NDArray[np.bool_], bool]:
         """Elevation order with the highest-elevation w-test-clean measurement moved first.
 
+        ``h_pred`` (m,) predicted measurements, ``val`` (m, k) their Jacobian rows (one
+        vehicle's rows: same indices); the screen uses the last ``cols`` columns.
         Returns (order, excluded, isolated): ``excluded`` marks the flagged measurements when
         more than one was flagged (all left out); ``isolated`` is the screen's
         :func:`screen_blunders_status` (False when it could not run).
         """
-        m = len(rows)
+        m = len(h_pred)
         order = np.arange(m)
         excluded = np.zeros(m, dtype=bool)
         if m < cols + 2:
             return order, excluded, False
-        h = np.array([_compact(r, cols) for r in rows])
-        res = z - np.array([r.h for r in rows])
+        h = val[:, -cols:]
+        res = z - h_pred
         flagged, isolated = screen_blunders_status(h, res, sigma, self._k)
         if flagged.any():
             for _ in range(int(flagged.sum())):
@@ -454,15 +492,16 @@ class ClusterFilterBase(ABC):
         return UpdateInfo(kind, vehicles, nu, s, nu * nu / s, False, prn)
 
     # ----------------------------------------------------------------- fault detection
-    def _clock_jump(self, v: str, rows: list[Row], z: F64, r_var: float) -> bool:
+    def _clock_jump(self, v: str, h_pred: F64, val: F64, idx: NDArray[np.int64], z: F64, r_var: float) -> bool:
         """Common-mode test of one vehicle's SD pseudorange innovations (module docstring);
-        on a detection re-initialize only its SD clock state at ``clk + median(nu)``."""
-        n = len(rows)
+        on a detection re-initialize only its SD clock state at ``clk + median(nu)``.
+        ``h_pred`` (m,), ``val`` (m, k): the rows, all on the state indices ``idx``."""
+        n = len(h_pred)
         if n < 3:
             return False
-        P = self._get_P()
-        nu = z - np.array([r.h for r in rows])
-        s = np.array([float(r.val @ P[np.ix_(r.idx, r.idx)] @ r.val) for r in rows]) + r_var
+        pb = self._get_P()[np.ix_(idx, idx)]
+        nu = z - h_pred
+        s = np.einsum("ij,jk,ik->i", val, pb, val) + r_var
         gate = self._k * np.sqrt(s)
         fail = np.abs(nu) > gate
         if 2 * int(fail.sum()) <= n or not (np.all(nu[fail] > 0.0) or np.all(nu[fail] < 0.0)):
@@ -513,25 +552,25 @@ class ClusterFilterBase(ABC):
 
     def _sd_pseudoranges(self, v: str, geo: GnssGeometry, ep: GnssEpoch, lead_ep: GnssEpoch,
                          iv: NDArray, il: NDArray) -> list[UpdateInfo]:
-        lay = self.layout
-        x = self._get_x()
+        # all rows of the vehicle in one numpy step (screen, clock test); each sequential
+        # update relinearizes its own row at the current state (models.SdPseudorangeRows)
+        rows = models.SdPseudorangeRows(self.layout, geo, v, ep.sv_pos_ecef_m[iv], lead_ep.sv_pos_ecef_m[il])
         z = ep.pseudorange_m[iv] - lead_ep.pseudorange_m[il]
-        rows = [models.sd_pseudorange(x, lay, geo, v, ep.sv_pos_ecef_m[i], lead_ep.sv_pos_ecef_m[j])
-                for i, j in zip(iv, il, strict=True)]
+        h_pred, val = rows.all(self._get_x())
         r_var = self.config.noise.sd_pseudorange_var_m2
-        if self.config.clock_jump_detection and self._clock_jump(v, rows, z, r_var):
-            rows = [models.sd_pseudorange(self._get_x(), lay, geo, v, ep.sv_pos_ecef_m[i], lead_ep.sv_pos_ecef_m[j])
-                    for i, j in zip(iv, il, strict=True)]
-        order, excluded, isolated = self._first_unflagged_order(rows, z, np.sqrt(r_var), 4)
+        if self.config.clock_jump_detection and self._clock_jump(v, h_pred, val, rows.idx, z, r_var):
+            h_pred, val = rows.all(self._get_x())
+        order, excluded, isolated = self._first_unflagged_order(h_pred, val, z, np.sqrt(r_var), 4)
         self.integrity_available[v] = isolated
         out = []
-        for o in order:
-            i, j = iv[o], il[o]
-            row = models.sd_pseudorange(self._get_x(), lay, geo, v, ep.sv_pos_ecef_m[i], lead_ep.sv_pos_ecef_m[j])
+        zl = z.tolist()
+        prns = ep.prn[iv].tolist()
+        for o in order.tolist():
+            row = rows.row(self._get_x(), o)
             if excluded[o]:
-                info = self._excluded(KIND_SD_PR, (v,), row, float(z[o]), r_var, int(ep.prn[i]))
+                info = self._excluded(KIND_SD_PR, (v,), row, zl[o], r_var, prns[o])
             else:
-                info = self._scalar(KIND_SD_PR, (v,), row, float(z[o]), r_var, prn=int(ep.prn[i]))
+                info = self._scalar(KIND_SD_PR, (v,), row, zl[o], r_var, prn=prns[o])
             if info is not None:
                 out.append(info)
                 self._record_test(v, info)
@@ -546,24 +585,20 @@ class ClusterFilterBase(ABC):
         iv, il = iv[ok], il[ok]
         z = ep.doppler_mps[iv] - lead_ep.doppler_mps[il]
         r_var = self.config.noise.sd_doppler_var_m2ps2
-
-        def row_at(x: F64, o: int) -> Row:
-            i, j = iv[o], il[o]
-            return models.sd_doppler(x, lay, geo, v, ep.sv_pos_ecef_m[i], ep.sv_vel_ecef_mps[i],
-                                     lead_ep.sv_pos_ecef_m[j], lead_ep.sv_vel_ecef_mps[j])
-
-        x = self._get_x()
-        rows = [row_at(x, o) for o in range(len(iv))]
+        rows = models.SdDopplerRows(lay, geo, v, ep.sv_pos_ecef_m[iv], ep.sv_vel_ecef_mps[iv],
+                                    lead_ep.sv_pos_ecef_m[il], lead_ep.sv_vel_ecef_mps[il])
+        h_pred, val = rows.all(self._get_x())
         # screen on (velocity, drift): the last 4 entries of the row
-        order, excluded, _ = self._first_unflagged_order(rows, z, np.sqrt(r_var), 4)
+        order, excluded, _ = self._first_unflagged_order(h_pred, val, z, np.sqrt(r_var), 4)
         out = []
-        for o in order:
+        zl = z.tolist()
+        prns = ep.prn[iv].tolist()
+        for o in order.tolist():
+            row = rows.row(self._get_x(), o)
             if excluded[o]:
-                info = self._excluded(KIND_SD_DOPPLER, (v,), row_at(self._get_x(), o), float(z[o]), r_var,
-                                      int(ep.prn[iv[o]]))
+                info = self._excluded(KIND_SD_DOPPLER, (v,), row, zl[o], r_var, prns[o])
             else:
-                info = self._scalar(KIND_SD_DOPPLER, (v,), row_at(self._get_x(), o), float(z[o]), r_var,
-                                    prn=int(ep.prn[iv[o]]))
+                info = self._scalar(KIND_SD_DOPPLER, (v,), row, zl[o], r_var, prn=prns[o])
             if info is not None:
                 out.append(info)
         return out
@@ -683,16 +718,15 @@ class ClusterFilterBase(ABC):
                 continue
             x = self._get_x()
             d = models.rel_position(x, lay, b) - models.rel_position(x, lay, a)
-            hess = _range_hessian(d)
-            if not self._linear_enough(a, b, hess, r_var):
+            m, h2_var = self._second_order(a, b, _range_hessian(d))
+            if not h2_var <= self.config.nonlinear_fraction * r_var:  # _linear_enough
                 self._count("uwb_deferred_nonlinear")
                 continue
             row = models.uwb_range(x, lay, a, b, use_bias_scale=self.config.use_uwb_bias_scale)
             # second-order EKF terms (Gelb 1974 sec. 6.1): E[f(d)] ~ f + tr(H2 P_d)/2 and the
             # neglected term's variance tr((H2 P_d)^2)/2 added to R
-            m = hess @ self._rel_cov(a, b)
-            row = Row(row.h + 0.5 * float(np.trace(m)), row.idx, row.val)
-            info = self._scalar(KIND_UWB, (a, b), row, z, r_var + 0.5 * float(np.trace(m @ m)))
+            row = Row(row.h + 0.5 * float(m.trace()), row.idx, row.val)
+            info = self._scalar(KIND_UWB, (a, b), row, z, r_var + h2_var)
             if info is None:
                 continue
             out.append(info)
@@ -759,12 +793,11 @@ class ClusterFilterBase(ABC):
             if np.hypot(d[0], d[1]) < 1.0:
                 self._count("bearing_degenerate_geometry")
                 continue
-            hess = _bearing_hessian(d)
-            if not self._linear_enough(a, b, hess, r_var):
+            m, h2_var = self._second_order(a, b, _bearing_hessian(d))
+            if not h2_var <= self.config.nonlinear_fraction * r_var:  # _linear_enough
                 self._count("bearing_deferred_nonlinear")
                 continue
-            m = hess @ self._rel_cov(a, b)
-            h2_bias, h2_var = 0.5 * float(np.trace(m)), 0.5 * float(np.trace(m @ m))
+            h2_bias = 0.5 * float(m.trace())
             if lay.has(AZIMUTH, a):
                 if not self._azimuth_ready[a]:
                     alpha0 = float(bearing_rad(d, z))  # atan2(dE, dN) - beta, wrapped
@@ -793,8 +826,13 @@ class ClusterFilterBase(ABC):
         right after a GNSS initialization (metre-level P) ranges and bearings over
         ~30 m are deferred until GNSS has shrunk P, which keeps the EKF consistent.
         """
+        return self._second_order(a, b, hess)[1] <= self.config.nonlinear_fraction * r_var
+
+    def _second_order(self, a: str, b: str, hess: F64) -> tuple[F64, float]:
+        """``(H2 P_d, tr((H2 P_d)^2) / 2)``: the product (its half trace is the second-order
+        mean) and the neglected second-order variance of :meth:`_linear_enough`."""
         m = hess @ self._rel_cov(a, b)
-        return 0.5 * float(np.trace(m @ m)) <= self.config.nonlinear_fraction * r_var
+        return m, 0.5 * float((m @ m).trace())
 
     def _rel_cov(self, a: str, b: str) -> F64:
         """Covariance of d = p_b - p_a."""
@@ -874,9 +912,16 @@ class ClusterFilterBase(ABC):
 
 def _range_hessian(d: F64) -> F64:
     """Hessian of |d|: (I - u u^T) / |d|."""
-    r = float(np.linalg.norm(d))
+    dx, dy, dz = d.tolist()
+    r = math.sqrt(dx * dx + dy * dy + dz * dz)
     u = d / r
-    return (np.eye(3) - np.outer(u, u)) / r
+    h = np.multiply.outer(u, -u)
+    h += _EYE3
+    h /= r
+    return h
+
+
+_EYE3 = np.eye(3)
 
 
 def _bearing_hessian(d: F64) -> F64:

@@ -19,6 +19,7 @@ sensors use to generate measurements (one model, two users).
 
 from __future__ import annotations
 
+import math
 from dataclasses import dataclass, field
 from typing import NamedTuple
 
@@ -28,7 +29,6 @@ from numpy.typing import NDArray
 from v2v.estimation.layout import UWB, StateLayout, uwb_pair_key
 from v2v.frames import ecef_to_enu_rotation, ecef_to_geodetic, wrap_angle
 from v2v.measmodels import (
-    bearing_jacobian,
     bearing_rad,
     range_jacobian,
     range_m,
@@ -153,10 +153,10 @@ def uwb_range(x: F64, layout: StateLayout, a: str, b: str, *, use_bias_scale: bo
     (Petovello et al. eq. 1). Jacobian: d/d p_b = (1 + s) u_ab = -d/d p_a, d/d b = 1,
     d/d s = rho_ab.
     """
-    p_a = rel_position(x, layout, a)
-    p_b = rel_position(x, layout, b)
-    rho = float(range_m(p_a, p_b))
-    u = range_jacobian(p_a, p_b)
+    d = rel_position(x, layout, b) - rel_position(x, layout, a)
+    dx, dy, dz = d.tolist()
+    rho = math.sqrt(dx * dx + dy * dy + dz * dz)  # = range_m(p_a, p_b), same arithmetic
+    u = d / rho  # = range_jacobian(p_a, p_b)
     pair = uwb_pair_key(a, b)
     has = use_bias_scale and layout.has(UWB, pair)
     k = 1.0 + x[layout.uwb_scale(pair)] if has else 1.0
@@ -190,7 +190,9 @@ def bearing(x: F64, layout: StateLayout, a: str, b: str, azimuth_a_rad: float | 
     else:
         alpha = float(azimuth_a_rad)
     h = float(bearing_rad(d, alpha))
-    j = bearing_jacobian(d)
+    e, n, _ = d.tolist()
+    r2 = e * e + n * n
+    j = np.array([n / r2, -e / r2, 0.0])  # = bearing_jacobian(d), without the array overhead
     idx_l: list[I64] = []
     val_l: list[F64] = []
     if a != layout.lead:
@@ -215,3 +217,120 @@ def dense_row(row: Row, n: int) -> F64:
     h = np.zeros((1, n))
     np.add.at(h[0], row.idx, row.val)
     return h
+
+
+# ----------------------------------------------------------------------- GNSS, one vehicle at once
+class SdPseudorangeRows:
+    """All SD pseudorange rows of one vehicle for one epoch (vectorized :func:`sd_pseudorange`).
+
+    The lead's ranges do not depend on the state: computed once. :meth:`all` builds every
+    row at one state in one numpy step (screening, clock-jump test); :meth:`row` rebuilds
+    satellite ``o``'s row at the current state for the sequential update, with the same
+    arithmetic as :func:`sd_pseudorange` (the range, ~2e7 m, is differenced against the
+    lead's, so ``h`` is computed in exactly the same order to keep it bit-identical).
+    Every row has the same ``idx`` (position, clock).
+    """
+
+    def __init__(self, layout: StateLayout, geo: GnssGeometry, v: str, sv_v_ecef_m: F64, sv_lead_ecef_m: F64):
+        ps = layout.position(v)
+        self._ps = ps
+        self._clk = layout.clock(v)
+        self.idx = np.array([ps.start, ps.start + 1, ps.start + 2, self._clk], dtype=np.int64)
+        self._geo = geo
+        self._rot = geo.rot_ecef_to_enu
+        self._sv = np.asarray(sv_v_ecef_m, dtype=float).reshape(-1, 3)
+        self._sv_rows = [s for s in self._sv]
+        self._rho_lead = range_m(geo.base_ecef_m, np.asarray(sv_lead_ecef_m, dtype=float).reshape(-1, 3))
+        self._rho_lead_f = self._rho_lead.tolist()
+
+    def __len__(self) -> int:
+        return len(self._sv)
+
+    def all(self, x: F64) -> tuple[F64, F64]:
+        """(h (m,), val (m, 4)) of every row at state ``x``."""
+        r_v = self._geo.abs_position(x[self._ps])
+        d = self._sv - r_v
+        rho = np.sqrt(np.sum(d * d, axis=-1))
+        h = (rho - self._rho_lead) + x[self._clk]
+        val = np.empty((len(rho), 4))
+        val[:, :3] = -((d / rho[:, None]) @ self._rot.T)
+        val[:, 3] = 1.0
+        return h, val
+
+    def row(self, x: F64, o: int) -> Row:
+        """Row of satellite ``o`` at state ``x`` (same as :func:`sd_pseudorange`)."""
+        r_v = self._geo.abs_position(x[self._ps])
+        d = self._sv_rows[o] - r_v
+        dx, dy, dz = d.tolist()
+        rho = math.sqrt(dx * dx + dy * dy + dz * dz)
+        h = float(rho - self._rho_lead_f[o]) + x[self._clk]
+        val = np.empty(4)
+        val[:3] = self._rot @ (d / rho)
+        np.negative(val[:3], out=val[:3])
+        val[3] = 1.0
+        return Row(h, self.idx, val)
+
+
+class SdDopplerRows:
+    """All SD Doppler rows of one vehicle for one epoch (vectorized :func:`sd_doppler`).
+
+    Rows have ``idx`` (position, velocity, drift); the lead's range rates are computed once.
+    """
+
+    def __init__(self, layout: StateLayout, geo: GnssGeometry, v: str, sv_v_ecef_m: F64, sv_vel_v_ecef_mps: F64,
+                 sv_lead_ecef_m: F64, sv_vel_lead_ecef_mps: F64):
+        ps, vs = layout.position(v), layout.velocity(v)
+        self._ps, self._vs = ps, vs
+        self._drift = layout.drift(v)
+        self.idx = np.array([*range(ps.start, ps.stop), *range(vs.start, vs.stop), self._drift], dtype=np.int64)
+        self._geo = geo
+        self._rot = geo.rot_ecef_to_enu
+        self._sv = np.asarray(sv_v_ecef_m, dtype=float).reshape(-1, 3)
+        self._svv = np.asarray(sv_vel_v_ecef_mps, dtype=float).reshape(-1, 3)
+        self._rate_lead = range_rate_mps(geo.base_ecef_m, geo.base_vel_ecef_mps,
+                                         np.asarray(sv_lead_ecef_m, dtype=float).reshape(-1, 3),
+                                         np.asarray(sv_vel_lead_ecef_mps, dtype=float).reshape(-1, 3))
+        self._sv_rows = [s for s in self._sv]
+        self._svv_rows = [s for s in self._svv]
+        self._rate_lead_f = self._rate_lead.tolist()
+
+    def __len__(self) -> int:
+        return len(self._sv)
+
+    def _rows(self, x: F64, sel: slice) -> tuple[F64, F64]:
+        r_v = self._geo.abs_position(x[self._ps])
+        v_v = self._geo.abs_velocity(x[self._vs])
+        sv, svv = self._sv[sel], self._svv[sel]
+        rate = range_rate_mps(r_v, v_v, sv, svv)
+        h = (rate - self._rate_lead[sel]) + x[self._drift]
+        d_r, d_v = range_rate_jacobians(r_v, v_v, sv, svv)
+        val = np.empty((len(rate), 7))
+        val[:, 0:3] = d_r @ self._rot.T
+        val[:, 3:6] = d_v @ self._rot.T
+        val[:, 6] = 1.0
+        return h, val
+
+    def all(self, x: F64) -> tuple[F64, F64]:
+        """(h (m,), val (m, 7)) of every row at state ``x``."""
+        return self._rows(x, slice(None))
+
+    def row(self, x: F64, o: int) -> Row:
+        """Row of satellite ``o`` at state ``x``: :func:`sd_doppler`'s arithmetic
+        (:func:`v2v.measmodels.range_rate_mps`, :func:`~v2v.measmodels.range_rate_jacobians`)
+        on one satellite without the per-call array overhead."""
+        r_v = self._geo.abs_position(x[self._ps])
+        v_v = self._geo.abs_velocity(x[self._vs])
+        d = self._sv_rows[o] - r_v
+        dx, dy, dz = d.tolist()
+        rho = math.sqrt(dx * dx + dy * dy + dz * dz)
+        u = d / rho
+        dv = self._svv_rows[o] - v_v
+        ux, uy, uz = u.tolist()
+        wx, wy, wz = dv.tolist()
+        rate = ux * wx + uy * wy + uz * wz
+        h = float(rate - self._rate_lead_f[o]) + x[self._drift]
+        val = np.empty(7)
+        val[0:3] = self._rot @ (-(dv - u * rate) / rho)
+        val[3:6] = self._rot @ -u
+        val[6] = 1.0
+        return Row(h, self.idx, val)
