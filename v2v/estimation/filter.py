@@ -697,6 +697,21 @@ class ClusterFilterBase(ABC):
         self._count("initialized_vehicles")
         return True
 
+    def _pair_usable(self, kind: str, a: str, b: str, z: float, known: set[str]) -> bool:
+        """A measurement between vehicles a and b can be used: finite, both in the cluster and
+        initialized. Counts the reason when not (``nonfinite_<kind>``, ``<kind>_unknown_vehicle``,
+        ``<kind>_uninitialized``)."""
+        if not np.isfinite(z):
+            self._count(f"nonfinite_{kind}")
+            return False
+        if a not in known or b not in known or a == b:
+            self._count(f"{kind}_unknown_vehicle")
+            return False
+        if not (self.is_initialized(a) and self.is_initialized(b)):
+            self._count(f"{kind}_uninitialized")
+            return False
+        return True
+
     # ----------------------------------------------------------------- UWB
     def update_uwb(self, ranges: UwbRanges) -> list[UpdateInfo]:
         """One scalar update per UWB range (the caller has predicted to the time tag)."""
@@ -707,14 +722,7 @@ class ClusterFilterBase(ABC):
         for k in range(ranges.n):
             a, b = ranges.a[k], ranges.b[k]
             z = float(ranges.range_m[k])
-            if not np.isfinite(z):
-                self._count(f"nonfinite_{KIND_UWB}")
-                continue
-            if a not in known or b not in known or a == b:
-                self._count("uwb_unknown_vehicle")
-                continue
-            if not (self.is_initialized(a) and self.is_initialized(b)):
-                self._count("uwb_uninitialized")
+            if not self._pair_usable(KIND_UWB, a, b, z, known):
                 continue
             x = self._get_x()
             d = models.rel_position(x, lay, b) - models.rel_position(x, lay, a)
@@ -779,14 +787,7 @@ class ClusterFilterBase(ABC):
         for k in range(bearings.n):
             a, b = bearings.a[k], bearings.b[k]
             z = float(bearings.bearing_rad[k])
-            if not np.isfinite(z):
-                self._count(f"nonfinite_{KIND_BEARING}")
-                continue
-            if a not in known or b not in known or a == b:
-                self._count("bearing_unknown_vehicle")
-                continue
-            if not (self.is_initialized(a) and self.is_initialized(b)):
-                self._count("bearing_uninitialized")
+            if not self._pair_usable(KIND_BEARING, a, b, z, known):
                 continue
             x = self._get_x()
             d = models.rel_position(x, lay, b) - models.rel_position(x, lay, a)
