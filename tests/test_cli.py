@@ -112,3 +112,19 @@ def test_replay_command_points_at_the_recording(tmp_path):
     cmd = replay_command(tmp_path, web=True, port=9123)
     assert cmd[-1] == str(tmp_path / "replay.rrd")
     assert "--serve-web" in cmd and cmd[cmd.index("--bind") + 1] == "127.0.0.1" and "9123" in cmd
+
+
+def test_readme_scenario_example_is_a_valid_scenario(tmp_path):
+    """The field-by-field example in the README is a scenario v2v accepts (docs stay true)."""
+    import re
+
+    from v2v.config.scenario import load_scenario
+
+    readme = (Path(__file__).resolve().parents[1] / "README.md").read_text()
+    section = readme.split("## A scenario, field by field", 1)[1]
+    block = re.search(r"```toml\n(.*?)```", section, re.S).group(1)
+    f = tmp_path / "readme.toml"
+    f.write_text(block)
+    sc = load_scenario(f)
+    assert sc.network.name == "urban_canyon" and sc.clusters[0].vehicles == 3
+    assert [s.name for s in sc.solutions] == ["GPS+UWB+Bearing"]
