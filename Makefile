@@ -5,7 +5,7 @@ VENV := .venv
 PY := $(VENV)/bin/python
 STAMP := $(VENV)/.stamp-installed
 
-.PHONY: demo test test-all lint typecheck nets bench clean
+.PHONY: demo test test-all lint nets bench clean venv
 
 $(STAMP): requirements.lock pyproject.toml
 	@test -x $(PY) || $(PYTHON) -m venv $(VENV)
@@ -33,7 +33,9 @@ nets: $(STAMP)
 	$(VENV)/bin/v2v nets build
 
 bench: $(STAMP)
-	$(PY) benchmarks/run_benchmarks.py
+	$(PY) benchmarks/bench_run.py
+	$(PY) benchmarks/bench_filter.py
+	$(PY) benchmarks/bench_synthesis.py
 
 clean:
 	rm -rf $(VENV) runs .pytest_cache
