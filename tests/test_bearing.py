@@ -205,7 +205,7 @@ def test_azimuth_bias_is_gauss_markov():
         ({"rate_hz": -10.0}, "bearing.rate_hz"),
         ({"field_of_view_rad": 7.0}, "bearing.field_of_view_rad"),
         ({"max_range_m": 0.0}, "bearing.max_range_m"),
-        ({"measuring": "some"}, "bearing.measuring"),
+        ({"measuring": "some"}, "sensors.bearing.measuring"),
     ],
 )
 def test_bad_settings_are_user_errors(kw, field):
@@ -220,4 +220,4 @@ def test_unknown_measuring_vehicle_is_user_error():
     steps = make_steps(t, {"a": np.stack([z, z], 1), "b": np.stack([z, z + 20], 1)})
     with pytest.raises(UserError) as ei:
         BearingSensor(measuring=("a", "ghost")).simulate(steps, np.random.default_rng(0))
-    assert ei.value.field == "bearing.measuring" and "ghost" in str(ei.value)
+    assert ei.value.field == "sensors.bearing.measuring" and "ghost" in str(ei.value)

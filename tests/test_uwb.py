@@ -454,7 +454,7 @@ def test_profiles_reproduce_thesis_numbers():
 def test_unknown_profile_is_user_error():
     with pytest.raises(UserError) as ei:
         uwb.profile_by_name("dw1000")
-    assert ei.value.field == "uwb.profile" and "mssi" in str(ei.value) and "tdc" in str(ei.value)
+    assert ei.value.field == "sensors.uwb.profile" and "mssi" in str(ei.value) and "tdc" in str(ei.value)
 
 
 @pytest.mark.parametrize(
@@ -470,10 +470,10 @@ def test_bad_profile_values_are_user_errors(field, value):
 def test_pair_with_missing_vehicle_is_user_error():
     with pytest.raises(UserError) as ei:
         net("mssi", ids=("a", "b"), pairs=[("a", "ghost")])
-    assert ei.value.field == "uwb.pairs" and "ghost" in str(ei.value)
+    assert ei.value.field == "sensors.uwb.pairs" and "ghost" in str(ei.value)
 
 
 def test_pair_of_different_radio_types_is_user_error():
     with pytest.raises(UserError) as ei:
         net("mssi", ids=("a", "b"), vehicle_profiles={"b": "tdc"})
-    assert ei.value.field == "uwb.pairs"
+    assert ei.value.field == "sensors.uwb.pairs"

@@ -198,18 +198,11 @@ def _read_seeds(raw: Any, where: str) -> tuple[int, ...]:
 
 def load_study(path: str | Path) -> Study:
     """Read a study file and validate every run's scenario (raises :class:`UserError`)."""
-    import tomllib
 
-    from v2v.config.scenario import load_scenario
+    from v2v.config.scenario import load_scenario, read_toml
 
     p = Path(path)
-    if not p.is_file():
-        raise UserError(f"study file {str(p)!r} does not exist", field="STUDY", fix="give the path to a study .toml")
-    try:
-        with p.open("rb") as f:
-            data = tomllib.load(f)
-    except tomllib.TOMLDecodeError as exc:
-        raise UserError(f"{p}: not valid TOML ({exc})", field="STUDY", fix="fix the TOML syntax") from None
+    data = read_toml(p, field="STUDY", what="study file")
     unknown = sorted(set(data) - set(STUDY_KEYS))
     if unknown:
         import difflib

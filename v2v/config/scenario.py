@@ -268,6 +268,18 @@ def _allowed_keys_at(loc: tuple[Any, ...]) -> list[str]:
     return list(model.model_fields)
 
 
+def read_toml(path: Path, *, field: str, what: str) -> dict[str, Any]:
+    """Read a TOML file (data only); a missing file or bad syntax is a one-line UserError."""
+    p = Path(path)
+    if not p.is_file():
+        raise UserError(f"{what} {str(p)!r} does not exist", field=field, fix="give the path to a .toml file")
+    try:
+        with p.open("rb") as f:
+            return tomllib.load(f)
+    except tomllib.TOMLDecodeError as exc:
+        raise UserError(f"{p}: not valid TOML ({exc})", field=field, fix="fix the TOML syntax") from None
+
+
 def load_default_dict() -> dict[str, Any]:
     with DEFAULT_SCENARIO_PATH.open("rb") as f:
         return tomllib.load(f)
@@ -282,13 +294,7 @@ def load_scenario(path: str | Path | None = None, overrides: list[str] | tuple[s
     source = "the default scenario"
     if path is not None:
         p = Path(path)
-        if not p.is_file():
-            raise UserError(f"scenario file {str(p)!r} does not exist", field="SCENARIO", fix="give the path to a .toml file")
-        try:
-            with p.open("rb") as f:
-                user = tomllib.load(f)
-        except tomllib.TOMLDecodeError as exc:
-            raise UserError(f"{p}: not valid TOML ({exc})", field="SCENARIO", fix="fix the TOML syntax") from None
+        user = read_toml(p, field="SCENARIO", what="scenario file")
         # A user's cluster list replaces the default list whole; fill each cluster from the
         # default cluster's values so a user can write just `name` and `vehicles`.
         if "clusters" in user and isinstance(user["clusters"], list):

@@ -87,7 +87,7 @@ class BearingSensor:
         if isinstance(self.measuring, str):
             if self.measuring != "all":
                 raise UserError(
-                    f"unknown setting {self.measuring!r}", field="bearing.measuring", fix='use "all" or a list of vehicle ids'
+                    f"unknown setting {self.measuring!r}", field="sensors.bearing.measuring", fix='use "all" or a list of vehicle ids'
                 )
         else:
             object.__setattr__(self, "measuring", tuple(str(v) for v in self.measuring))
@@ -109,7 +109,7 @@ class BearingSensor:
             if missing:
                 raise UserError(
                     f"measuring vehicle(s) {missing} never appear in the traffic",
-                    field="bearing.measuring",
+                    field="sensors.bearing.measuring",
                     fix=f"use ids among {sorted(seen)}",
                 )
         cols: dict[str, list] = {k: [] for k in ("t", "a", "b", "beta", "beta_true", "az_rep", "az_true")}

@@ -326,7 +326,7 @@ def profile_by_name(name: str) -> UwbRadioProfile:
     except KeyError:
         raise UserError(
             f"unknown UWB radio profile {name!r}",
-            field="uwb.profile",
+            field="sensors.uwb.profile",
             fix=f"use one of {', '.join(sorted(PROFILES))}",
         ) from None
 
@@ -505,7 +505,7 @@ class UwbNetwork:
         for vid in vp:
             if vid not in known:
                 raise UserError(
-                    f"vehicle {vid!r} is not in the run", field="uwb.vehicle_profiles", fix=f"use one of {ids}"
+                    f"vehicle {vid!r} is not in the run", field="sensors.uwb.vehicle_profiles", fix=f"use one of {ids}"
                 )
         offsets: dict[str, F64] = {}
         for vid, off in dict(antenna_offsets_body_m or {}).items():
@@ -533,23 +533,23 @@ class UwbNetwork:
 
         if isinstance(pairs, str):
             if pairs != "all":
-                raise UserError(f"unknown pairs setting {pairs!r}", field="uwb.pairs", fix='use "all" or a list of pairs')
+                raise UserError(f"unknown pairs setting {pairs!r}", field="sensors.uwb.pairs", fix='use "all" or a list of pairs')
             pair_list = list(itertools.combinations(ids, 2))
         else:
             pair_list = []
             for pr in pairs:
                 if len(pr) != 2:
-                    raise UserError(f"pair {pr!r} must name two vehicles", field="uwb.pairs", fix="give [a, b]")
+                    raise UserError(f"pair {pr!r} must name two vehicles", field="sensors.uwb.pairs", fix="give [a, b]")
                 a, b = str(pr[0]), str(pr[1])
                 for v in (a, b):
                     if v not in known:
                         raise UserError(
                             f"pair ({a!r}, {b!r}) names vehicle {v!r} which has no radio in this run",
-                            field="uwb.pairs",
+                            field="sensors.uwb.pairs",
                             fix=f"use vehicles among {ids}",
                         )
                 if a == b:
-                    raise UserError(f"pair ({a!r}, {b!r}) ranges a radio to itself", field="uwb.pairs", fix="use two vehicles")
+                    raise UserError(f"pair ({a!r}, {b!r}) ranges a radio to itself", field="sensors.uwb.pairs", fix="use two vehicles")
                 if (a, b) not in pair_list and (b, a) not in pair_list:
                     pair_list.append((a, b))
         for a, b in pair_list:
@@ -557,7 +557,7 @@ class UwbNetwork:
             if pa.name != pb.name:
                 raise UserError(
                     f"vehicles {a!r} ({pa.name}) and {b!r} ({pb.name}) carry radios of different types",
-                    field="uwb.pairs",
+                    field="sensors.uwb.pairs",
                     fix="range only between radios of one type (list the pairs explicitly)",
                 )
         self.pairs: tuple[tuple[str, str], ...] = tuple(pair_list)

@@ -169,7 +169,7 @@ class NominalConstellation:
         if np.any(~((t >= t0) & (t <= t1))):
             raise UserError(
                 f"GPS time outside the nominal constellation's +-7 day span around {self.epoch_gps_s:.0f} GPS s",
-                field="gnss.start_time",
+                field="start_utc",
                 fix="build the NominalConstellation with an epoch at the scenario's start",
             )
         known = (prn_arr >= 1) & (prn_arr <= self.elements.m)

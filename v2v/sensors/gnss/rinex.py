@@ -287,7 +287,7 @@ class BroadcastEphemeris:
             raise UserError(
                 f"{_utc(tb)} (GPS {tb:.1f} s) is outside the navigation file {self.source or '(in memory)'}, "
                 f"which covers {_utc(t0)} to {_utc(t1)}",
-                field="gnss.start_time",
+                field="start_utc",
                 fix="choose a start time and duration inside the file's span or give the matching day's file",
             )
         idx = self.select(prn_arr, t)
