@@ -405,17 +405,19 @@ def _log_truth_and_links(logger, steps, uwb, bearings, gnss_epochs) -> None:
 
     if isinstance(logger, NullLogger):
         return
-    uwb_t = uwb.t_s if uwb is not None else np.zeros(0)
-    br_t = bearings.t_s if bearings is not None else np.zeros(0)
+    # records in time order, so each step's window is a searchsorted slice (not a scan of the run)
+    series = []
+    for kind, meas in (("uwb", uwb), ("bearing", bearings)):
+        if meas is not None and meas.n:
+            order = np.argsort(meas.t_s, kind="stable")
+            series.append((kind, meas, order, meas.t_s[order]))
     sky_every = {round(t * 1e6): eps for t, eps in gnss_epochs if abs(t - round(t)) < 1e-6}  # 1 Hz sky plots
     prev = -np.inf
     for st in steps:
         logger.log_truth(st.t_s, st)
-        for kind, tt, meas in (("uwb", uwb_t, uwb), ("bearing", br_t, bearings)):
-            if meas is None:
-                continue
-            window = np.flatnonzero((tt > prev) & (tt <= st.t_s + 1e-9))
-            idx = [int(k) for k in window if meas.a[k] in st.vehicles and meas.b[k] in st.vehicles]
+        for kind, meas, order, tt in series:
+            lo, hi = np.searchsorted(tt, prev, side="right"), np.searchsorted(tt, st.t_s + 1e-9, side="right")
+            idx = [int(k) for k in order[lo:hi] if meas.a[k] in st.vehicles and meas.b[k] in st.vehicles]
             if idx:
                 a = np.array([st.vehicles[meas.a[k]].xyz_m for k in idx])
                 b = np.array([st.vehicles[meas.b[k]].xyz_m for k in idx])
