@@ -302,10 +302,15 @@ def run_solution(sol: SolutionSection, ekf: ClusterEkf, events: Sequence[Event],
             if t_out - last_heard.setdefault(v, t_out) > LEAVE_AFTER_S:
                 ekf.remove_vehicle(v)
                 rec.membership.append((t_out, v, "left"))
-        has_gnss = any(
-            events[k].kind == "gnss" and events[k].lead_base_ecef_m is not None
-            for k in range(ei, n_events) if events[k].t_s <= t_out + 1e-9
-        ) if sol.height_aiding_sigma_m is not None else True
+        has_gnss = True
+        if sol.height_aiding_sigma_m is not None:  # look ahead only within this output interval
+            has_gnss = False
+            k = ei
+            while k < n_events and events[k].t_s <= t_out + 1e-9:
+                if events[k].kind == "gnss" and events[k].lead_base_ecef_m is not None:
+                    has_gnss = True
+                    break
+                k += 1
         aided = False
         while ei < n_events and events[ei].t_s <= t_out + 1e-9:
             ev = events[ei]
