@@ -358,12 +358,14 @@ def test_earth_rotation_correction(snippet_eph):
 # 5. Nominal constellation
 
 
-def test_nominal_constellation_geometry():
+@pytest.mark.parametrize(("slots", "per_plane"), [("baseline24", [4] * 6), ("expandable27", [4, 4, 4, 5, 5, 5])])
+def test_nominal_constellation_geometry(slots, per_plane):
+    """SPS PS slot tables: 24 baseline slots (4 per plane) or 27 with B1, D2, F2 split (5 in B, D, F)."""
     t0 = utc_to_gps_s(datetime(2021, 4, 28, 18))
-    nc = NominalConstellation(t0)
+    nc = NominalConstellation(t0, slots=slots)
     assert isinstance(nc, Ephemeris)
     prn = nc.prns()
-    assert prn.size == 24
+    assert prn.size == sum(per_plane)
     for dt in (0.0, 3 * 3600.0, 86400.0):
         st = nc.sv_states(prn, t0 + dt)
         r = np.linalg.norm(st.pos_ecef_m, axis=1)
@@ -380,11 +382,11 @@ def test_nominal_constellation_geometry():
         # Circular speed sqrt(GM/a) = 3873.9 m/s; the ground-track-repeat rate is 9 ppm faster
         # (documented in the module) -> 1e-5 relative.
         np.testing.assert_allclose(np.linalg.norm(v_in, axis=1), np.sqrt(GM_MPS2 / 26_559_700.0), rtol=1e-5)
-        # Four satellites in each of six planes 60 deg apart.
+        # Six planes 60 deg apart, four (or five) satellites each.
         node = np.degrees(np.arctan2(h[:, 0], -h[:, 1])) % 360.0
         planes = np.round((node - node.min()) / 60.0, 6)
         vals, counts = np.unique(np.round(planes), return_counts=True)
-        assert list(vals) == [0, 1, 2, 3, 4, 5] and np.all(counts == 4)
+        assert list(vals) == [0, 1, 2, 3, 4, 5] and sorted(counts) == per_plane
         np.testing.assert_allclose(planes, np.round(planes), atol=1e-6)
     # Ground track repeats after 2 pi / (OMEGA_E - Omega_dot) (about a sidereal day).
     t_rep = 2 * np.pi / (OMEGA_E - j2_node_rate_radps())

@@ -410,6 +410,12 @@ def test_links_agree_with_brute_force_sampling():
     p0 = np.column_stack([rng.uniform(-100, 100, (m, 2)), rng.uniform(0.5, 20, m)])
     p1 = np.column_stack([rng.uniform(-100, 100, (m, 2)), rng.uniform(0.5, 20, m)])
     r = geometry(*blds).links(p0, p1, boxes, None)
+    # The compiled building test (default) and the numpy/spatial-index one give identical results.
+    g_np = geometry(*blds)
+    g_np.compiled_pairs_max = 0
+    r_np = g_np.links(p0, p1, boxes, None)
+    for f in ("blocked", "blocker_kind", "blocker_id", "hit_distance_m", "reflection_excess_m"):
+        np.testing.assert_array_equal(getattr(r, f), getattr(r_np, f))
 
     t = np.linspace(0.0, 1.0, 20001)
     n_inside = np.zeros(m, dtype=int)
@@ -466,10 +472,11 @@ def test_sky_agrees_with_brute_force_reference_and_both_screening_paths():
     * echo: every wall, image method (module docstring), both legs sampled the same way
       (without the 1 cm next to the reflection point), smallest valid excess.
 
-    The optimized screening (dense over all walls for small worlds, spatial index for large
-    ones; forced with ``dense_pairs_max = 0``) must give bit-identical results, and both
-    must match the reference: blocked exactly, echo found/not found exactly and its excess to
-    ATOL_M, except where a leg's blocked stretch is ambiguous under sampling.
+    The optimized paths (compiled brute-force kernels, the default for worlds of this size;
+    the numpy formulations forced with ``compiled_pairs_max = 0``, with dense screening over all
+    walls or, forced with ``dense_pairs_max = 0``, the spatial index) must give bit-identical
+    results, and all must match the reference: blocked exactly, echo found/not found exactly
+    and its excess to ATOL_M, except where a leg's blocked stretch is ambiguous under sampling.
     """
     rng = np.random.default_rng(11)
     nb = 40
@@ -481,6 +488,9 @@ def test_sky_agrees_with_brute_force_reference_and_both_screening_paths():
     g = geometry(*[building(f"b{i}", fps[i], h[i]) for i in range(nb)])
     g_index = geometry(*[building(f"b{i}", fps[i], h[i]) for i in range(nb)])
     g_index.dense_pairs_max = 0
+    g_index.compiled_pairs_max = 0
+    g_dense = geometry(*[building(f"b{i}", fps[i], h[i]) for i in range(nb)])
+    g_dense.compiled_pairs_max = 0
     na, k, max_d = 20, 10, 200.0
     ants = np.column_stack([rng.uniform(-100, 100, (na, 2)), np.full(na, 1.5)])
     ai = np.repeat(np.arange(na), k)
@@ -488,8 +498,11 @@ def test_sky_agrees_with_brute_force_reference_and_both_screening_paths():
     el = np.radians(rng.uniform(8, 75, na * k))
     r = g.sky_many(ants, ai, az, el, max_d)
     r_idx = g_index.sky_many(ants, ai, az, el, max_d)
+    r_dense = g_dense.sky_many(ants, ai, az, el, max_d)
+    assert r.blocked.any() and np.isfinite(r.echo_excess_m).any()
     for f in ("blocked", "blocker_id", "echo_excess_m"):
         np.testing.assert_array_equal(getattr(r, f), getattr(r_idx, f))
+        np.testing.assert_array_equal(getattr(r, f), getattr(r_dense, f))
 
     # Per building, the local frame of its rectangle (inside test for samples).
     u = np.column_stack([np.cos(ang), np.sin(ang)])

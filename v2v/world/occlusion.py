@@ -56,6 +56,14 @@ crossings beyond ``D`` contributing nothing. ``D = min(max_dist, (h - z_a) / tan
 is where the ray rises above the canopy. The slant length is the horizontal one over
 ``cos(el)``. Overlapping foliage polygons add up (a tree inside a forest polygon counts
 twice).
+
+Implementation. The building test of every segment (sky rays, reflected legs, radio links)
+and the sky-echo candidate search run in compiled (numba, cached) brute-force kernels with a
+per-building bounding-box screen: for worlds of hundreds of buildings that is several times
+faster than the spatial-index queries. They evaluate the same floating-point expressions as
+the numpy/spatial-index formulations (``_building_hits_vectorized``, ``_sky_echo_vectorized``),
+which large worlds (``compiled_pairs_max``) and the rare segments that descend through a roof
+still use; the tests check that both give identical results.
 """
 
 from __future__ import annotations
@@ -64,6 +72,7 @@ from dataclasses import dataclass
 
 import numpy as np
 import shapely
+from numba import njit
 from numpy.typing import ArrayLike, NDArray
 
 from v2v.world.buildings import World
@@ -155,6 +164,186 @@ def _query_pairs(tree: shapely.STRtree, geoms, **kw) -> tuple[NDArray[np.int64],
     return res[0].astype(np.int64), res[1].astype(np.int64)
 
 
+_JIT = {"cache": True, "nogil": True, "error_model": "numpy"}
+
+
+@njit(**_JIT)
+def _wall_crossings_kernel(
+    p0, p1, skip_start_m, skip_end_m, h_max, wa, wb, w_h, w_len, b_first, b_bbox
+):  # pragma: no cover - compiled
+    """First blocking wall crossing of each segment (the wall part of ``_building_hits``).
+
+    Exactly the decisions of the vectorized path, evaluated with the same floating-point
+    expressions: the sub-segment below the tallest roof, the closed-segment orientation test
+    (preceded by the envelope test the spatial index does), ``t = clip(cross(a - p0, e) /
+    cross(d, e))``, grazing rejection, ``z(t) < h_wall`` and the skip distances. Buildings
+    whose bounding box misses the sub-segment's envelope are skipped (their walls' envelopes
+    miss it too). Returns per segment the smallest ``t`` (inf if none), the building of the
+    first wall holding it (-1), and whether any blocking crossing belongs to a building whose
+    roof the segment descends through (``z0 > h > z1``): those need the roof test.
+    """
+    n = p0.shape[0]
+    nb = b_first.shape[0] - 1
+    t_best = np.full(n, np.inf)
+    b_best = np.full(n, -1, dtype=np.int64)
+    roof = np.zeros(n, dtype=np.bool_)
+    for i in range(n):
+        x0, y0, z0 = p0[i, 0], p0[i, 1], p0[i, 2]
+        dx, dy = p1[i, 0] - x0, p1[i, 1] - y0
+        dz = p1[i, 2] - z0
+        hlen = np.hypot(dx, dy)
+        if dz < 0.0:
+            ta = min(max((h_max - z0) / dz, 0.0), 1.0)
+            tb = 1.0
+            below = ta < tb
+        elif dz > 0.0:
+            ta = 0.0
+            tb = min(max((h_max - z0) / dz, 0.0), 1.0)
+            below = ta < tb
+        else:
+            ta, tb = 0.0, 1.0
+            below = z0 < h_max
+        if not below:
+            continue
+        ax, ay = x0 + ta * dx, y0 + ta * dy
+        bx, by = x0 + tb * dx, y0 + tb * dy
+        sx0, sx1 = min(ax, bx), max(ax, bx)
+        sy0, sy1 = min(ay, by), max(ay, by)
+        for b in range(nb):
+            if b_bbox[b, 0] > sx1 or b_bbox[b, 2] < sx0 or b_bbox[b, 1] > sy1 or b_bbox[b, 3] < sy0:
+                continue
+            for w in range(b_first[b], b_first[b + 1]):
+                cx, cy, ex, ey = wa[w, 0], wa[w, 1], wb[w, 0], wb[w, 1]
+                if min(cx, ex) > sx1 or max(cx, ex) < sx0 or min(cy, ey) > sy1 or max(cy, ey) < sy0:
+                    continue
+                o1 = (bx - ax) * (cy - ay) - (by - ay) * (cx - ax)
+                o2 = (bx - ax) * (ey - ay) - (by - ay) * (ex - ax)
+                if not (min(o1, o2) <= 0.0 and max(o1, o2) >= 0.0):
+                    continue
+                o3 = (ex - cx) * (ay - cy) - (ey - cy) * (ax - cx)
+                o4 = (ex - cx) * (by - cy) - (ey - cy) * (bx - cx)
+                if not (min(o3, o4) <= 0.0 and max(o3, o4) >= 0.0):
+                    continue
+                e0, e1 = ex - cx, ey - cy
+                den = dx * e1 - dy * e0
+                if not abs(den) > 1e-12 * hlen * w_len[w]:
+                    continue
+                t = ((cx - x0) * e1 - (cy - y0) * e0) / den
+                t = min(max(t, 0.0), 1.0)
+                z = z0 + t * dz
+                if not z < w_h[w]:
+                    continue
+                if skip_start_m > 0.0 and not t * hlen >= skip_start_m:
+                    continue
+                if skip_end_m > 0.0 and not (1.0 - t) * hlen >= skip_end_m:
+                    continue
+                if z0 > w_h[w] and p1[i, 2] < w_h[w]:
+                    roof[i] = True
+                if t < t_best[i]:
+                    t_best[i] = t
+                    b_best[i] = b
+    return t_best, b_best, roof
+
+
+@njit(**_JIT)
+def _sky_echo_candidates_kernel(
+    ants, ray_ant, s_hx, s_hy, ce, se, tan_el, max_dist_m, wa, w_nx, w_ny, w_dir, w_len, w_h
+):  # pragma: no cover - compiled
+    """Every geometrically valid wall echo of each blocked sky ray (see ``_sky_echo``).
+
+    For ray ``i`` from antenna ``ants[ray_ant[i]]`` with horizontal direction ``(s_hx, s_hy)``
+    (times ``cos el``) and wall ``w``: antenna in front (``d_w > 0``), wall above the antenna
+    (both screened once per antenna), wave from the front (``c = s . n > 0``),
+    ``d_w tan(el) < h_w - z_a``, reflection point ``R`` on the wall segment below its top and
+    within ``max_dist_m``. Returns (ray, excess ``2 d_w c``, R xyz, far point of the incident
+    leg xyz) with the same floating-point expressions as the vectorized formulation
+    (trigonometric inputs are computed by numpy outside).
+    """
+    nw = wa.shape[0]
+    na = ants.shape[0]
+    order = np.argsort(ray_ant, kind="mergesort")
+    ray_first = np.searchsorted(ray_ant[order], np.arange(na + 1))
+    walls = np.empty(nw, dtype=np.int64)
+    deltas = np.empty(nw)
+    hzs = np.empty(nw)
+    for fill in range(2):
+        if fill == 0:
+            count = 0
+        else:
+            ri = np.empty(count, dtype=np.int64)
+            exc = np.empty(count)
+            r3 = np.empty((count, 3))
+            far = np.empty((count, 3))
+            count = 0
+        for a in range(na):
+            if ray_first[a] == ray_first[a + 1]:
+                continue
+            xx, xy, xz = ants[a, 0], ants[a, 1], ants[a, 2]
+            nfront = 0
+            for w in range(nw):
+                delta = (xx - wa[w, 0]) * w_nx[w] + (xy - wa[w, 1]) * w_ny[w]
+                hz = w_h[w] - xz
+                if delta > 0.0 and hz > 0.0:
+                    walls[nfront] = w
+                    deltas[nfront] = delta
+                    hzs[nfront] = hz
+                    nfront += 1
+            for q in range(ray_first[a], ray_first[a + 1]):
+                i = order[q]
+                for j in range(nfront):
+                    w = walls[j]
+                    delta = deltas[j]
+                    nx, ny = w_nx[w], w_ny[w]
+                    c = s_hx[i] * nx + s_hy[i] * ny
+                    if not (c > 0.0 and delta * tan_el[i] < hzs[j]):
+                        continue
+                    tau = delta / c
+                    rx = xx + tau * (s_hx[i] - 2.0 * c * nx)
+                    ry = xy + tau * (s_hy[i] - 2.0 * c * ny)
+                    s_wall = ((rx - wa[w, 0]) * w_dir[w, 0] + (ry - wa[w, 1]) * w_dir[w, 1]) / w_len[w]
+                    if not (s_wall >= 0.0 and s_wall <= 1.0):
+                        continue
+                    z_r = xz + tau * se[i]
+                    if not (z_r < w_h[w] and tau * ce[i] <= max_dist_m):
+                        continue
+                    if fill == 1:
+                        ri[count] = i
+                        exc[count] = 2.0 * delta * c
+                        r3[count, 0], r3[count, 1], r3[count, 2] = rx, ry, z_r
+                        far[count, 0] = rx + max_dist_m * s_hx[i] / ce[i]
+                        far[count, 1] = ry + max_dist_m * s_hy[i] / ce[i]
+                        far[count, 2] = z_r + max_dist_m * tan_el[i]
+                    count += 1
+    return ri, exc, r3, far
+
+
+@njit(**_JIT)
+def _in_any_box_kernel(p, bbox):  # pragma: no cover - compiled
+    """Whether each point's (x, y) lies in at least one closed box ``(x0, y0, x1, y1)``."""
+    out = np.zeros(p.shape[0], dtype=np.bool_)
+    for i in range(p.shape[0]):
+        x, y = p[i, 0], p[i, 1]
+        for b in range(bbox.shape[0]):
+            if bbox[b, 0] <= x <= bbox[b, 2] and bbox[b, 1] <= y <= bbox[b, 3]:
+                out[i] = True
+                break
+    return out
+
+
+def warm_up() -> None:
+    """Load (or, on the first use after an install, compile and cache) the compiled kernels.
+
+    The first call of a numba kernel in a process costs its import and cache load (~0.1-0.5 s;
+    a few seconds when it has to compile); benchmarks call this outside their timed region.
+    """
+    p = np.zeros((1, 3))
+    w = np.zeros((1, 2))
+    one = np.ones(1)
+    _wall_crossings_kernel(p, p, 0.0, 0.0, 1.0, w, w + 1.0, one, one, np.array([0, 1]), np.zeros((1, 4)))
+    _sky_echo_candidates_kernel(p, np.zeros(1, dtype=np.int64), one, one, one, one, one, 1.0, w, one, one, w, one, one)
+    _in_any_box_kernel(p, np.zeros((1, 4)))
+
+
 class OcclusionGeometry:
     """Cached wall/footprint arrays and spatial indexes of one :class:`World`.
 
@@ -173,6 +362,10 @@ class OcclusionGeometry:
     #: over all walls at once instead of through the spatial index (same result, faster
     #: for small worlds).
     dense_pairs_max = 200_000
+    #: Up to this many (segment, building) pairs per building test, or (blocked ray, wall)
+    #: pairs per echo search, the compiled brute-force kernels are used; beyond (large
+    #: worlds) the spatial-index formulations (identical results).
+    compiled_pairs_max = 4_000_000
 
     def __init__(self, world: World, *, max_reflection_excess_m: float = 100.0):
         self.world = world
@@ -202,6 +395,19 @@ class OcclusionGeometry:
         self._w_h = self._b_h[self._w_bld] if self._w_bld.size else np.zeros(0)
         self._h_max = float(self._b_h.max()) if self._b_h.size else 0.0
         self._w_dir = self._we / self._w_len[:, None] if self._w_len.size else np.zeros((0, 2))
+        # Walls are grouped by building (ascending): per-building wall ranges and bounding boxes
+        # for the compiled crossing test.
+        nb = len(bl)
+        self._b_first = np.searchsorted(self._w_bld, np.arange(nb + 1)).astype(np.int64)
+        bbox = np.empty((nb, 4))
+        bbox[:, :2], bbox[:, 2:] = np.inf, -np.inf
+        if self._w_bld.size:
+            for end in (self._wa, self._wb):
+                np.minimum.at(bbox[:, 0], self._w_bld, end[:, 0])
+                np.minimum.at(bbox[:, 1], self._w_bld, end[:, 1])
+                np.maximum.at(bbox[:, 2], self._w_bld, end[:, 0])
+                np.maximum.at(bbox[:, 3], self._w_bld, end[:, 1])
+        self._b_bbox = bbox
         self._w_n = (
             np.column_stack([self._w_dir[:, 1], -self._w_dir[:, 0]]) if self._w_len.size else np.zeros((0, 2))
         )
@@ -249,6 +455,53 @@ class OcclusionGeometry:
         Crossings within ``skip_start_m`` / ``skip_end_m`` (horizontal) of ``p0`` / ``p1``
         are ignored (used for legs starting or ending on a reflecting wall).
         """
+        k = len(p0)
+        if k == 0 or self._w_len.size == 0:
+            return np.full(k, np.inf), np.full(k, -1, dtype=np.int64)
+        if k * (self._b_first.size - 1) > self.compiled_pairs_max:
+            return self._building_hits_vectorized(
+                p0, p1, skip_start_m=skip_start_m, skip_end_m=skip_end_m,
+                check_start_inside=check_start_inside, check_end_inside=check_end_inside,
+            )
+        p0 = np.ascontiguousarray(p0, dtype=float)
+        p1 = np.ascontiguousarray(p1, dtype=float)
+        t_w, b_w, roof = _wall_crossings_kernel(
+            p0, p1, float(skip_start_m), float(skip_end_m), self._h_max, self._wa, self._wb, self._w_h,
+            self._w_len, self._b_first, self._b_bbox,
+        )
+        # Roofs matter only for segments that descend through one: a blocking wall crossing of
+        # a building below p0 and above p1 (flagged), or p1 inside a footprint (needs dz < 0).
+        slow = roof | ((p1[:, 2] < p0[:, 2]) & check_end_inside)
+        if slow.any():
+            idx = np.flatnonzero(slow)
+            t_w[idx], b_w[idx] = self._building_hits_vectorized(
+                p0[idx], p1[idx], skip_start_m=skip_start_m, skip_end_m=skip_end_m,
+                check_start_inside=False, check_end_inside=check_end_inside,
+            )
+        if check_start_inside:
+            # Only points inside some footprint's bounding box can be within a footprint.
+            cand = np.flatnonzero(_in_any_box_kernel(p0, self._b_bbox))
+            if cand.size:
+                pi, bi = _query_pairs(self._b_tree, shapely.points(p0[cand, :2]), predicate="within")
+                pi = cand[pi]
+                # Ties at t = 0 go, as in the vectorized path, to a wall crossing at t = 0, then
+                # to the first footprint in index-query order (reversed: the last write wins).
+                ok = (p0[pi, 2] < self._b_h[bi]) & (t_w[pi] != 0.0)
+                t_w[pi[ok]] = 0.0
+                b_w[pi[ok][::-1]] = bi[ok][::-1]
+        return t_w, b_w
+
+    def _building_hits_vectorized(
+        self,
+        p0: FloatArray,
+        p1: FloatArray,
+        *,
+        skip_start_m: float = 0.0,
+        skip_end_m: float = 0.0,
+        check_start_inside: bool = True,
+        check_end_inside: bool = True,
+    ) -> tuple[FloatArray, NDArray[np.int64]]:
+        """:meth:`_building_hits` with the spatial index and numpy (reference implementation)."""
         k = len(p0)
         t_cand: list[FloatArray] = []
         g_cand: list[NDArray[np.int64]] = []
@@ -536,6 +789,41 @@ class OcclusionGeometry:
         max_dist_m: float,
     ) -> FloatArray:
         """Shortest valid wall-echo excess of each blocked ray; ray ``i`` starts at ``ants[ai[i]]``.
+
+        Every (blocked ray, wall) pair is tested exactly (compiled kernel; the module
+        docstring's conditions), then the candidates' legs are checked best-first
+        (:meth:`_best_reflection`). Worlds with more than ``compiled_pairs_max`` pairs use
+        the spatial-index formulation :meth:`_sky_echo_vectorized` (same result).
+        """
+        n = az.size
+        rays = np.flatnonzero(blocked)
+        if rays.size * self._w_len.size > self.compiled_pairs_max:
+            return self._sky_echo_vectorized(ants, ai, az, el, blocked, max_dist_m)
+        ce, se = np.cos(el[rays]), np.sin(el[rays])
+        tan_el = se / ce
+        xr = ants[ai[rays]]
+        s_hx, s_hy = ce * np.sin(az[rays]), ce * np.cos(az[rays])
+        ri, excess, r3, far = _sky_echo_candidates_kernel(
+            np.ascontiguousarray(ants, dtype=float), ai[rays], s_hx, s_hy, ce, se, tan_el, float(max_dist_m),
+            self._wa, self._w_nx, self._w_ny, self._w_dir, self._w_len, self._w_h,
+        )
+        out = np.full(n, np.nan)
+        if ri.size == 0:
+            return out
+        # _legs_clear(a, r, b) checks a->r and r->b: antenna -> R, then R -> far.
+        out[rays] = self._best_reflection(ri, excess, xr[ri], r3, far, rays.size)
+        return out
+
+    def _sky_echo_vectorized(
+        self,
+        ants: FloatArray,
+        ai: NDArray[np.int64],
+        az: FloatArray,
+        el: FloatArray,
+        blocked: NDArray[np.bool_],
+        max_dist_m: float,
+    ) -> FloatArray:
+        """:meth:`_sky_echo` with numpy and the spatial index (reference implementation).
 
         Candidate walls are screened per antenna first (antenna in front of the wall, wall
         above the antenna, ``d_w tan(el) < h_w - z_a`` for the antenna's lowest ray: exact

@@ -368,19 +368,43 @@ class SatelliteErrors:
 
         radial = r/|r|, cross = (r x v)/|r x v|, along = cross x radial.
         """
-        prn_a = np.atleast_1d(prn)
-        pas = np.broadcast_to(np.asarray(pass_index), prn_a.shape)
-        rac = np.array([self._draw(p, k)[0] for p, k in zip(prn_a, pas, strict=True)]).reshape(-1, 3)
+        rac = self.orbit_error_rac_m(prn, pass_index)
         r = np.asarray(pos_ecef_m, dtype=float).reshape(-1, 3)
         v = np.asarray(vel_ecef_mps, dtype=float).reshape(-1, 3)
-        u_r = r / np.linalg.norm(r, axis=1, keepdims=True)
-        h = np.cross(r, v)
-        u_c = h / np.linalg.norm(h, axis=1, keepdims=True)
-        u_a = np.cross(u_c, u_r)
-        return rac[:, :1] * u_r + rac[:, 1:2] * u_a + rac[:, 2:3] * u_c
+        return rac_to_ecef(rac, r, v)
+
+    def orbit_error_rac_m(self, prn: ArrayLike, pass_index: ArrayLike) -> F64:
+        """The (radial, along, cross) orbit error constants (n, 3) of each (prn, pass), metres."""
+        prn_a = np.atleast_1d(prn)
+        pas = np.broadcast_to(np.asarray(pass_index), prn_a.shape)
+        return np.array([self._draw(p, k)[0] for p, k in zip(prn_a, pas, strict=True)]).reshape(-1, 3)
 
     def clock_error_m(self, prn: ArrayLike, pass_index: ArrayLike) -> F64:
         """True-minus-broadcast satellite clock, metres (``c (dt_true - dt_broadcast)``)."""
         prn_a = np.atleast_1d(prn)
         pas = np.broadcast_to(np.asarray(pass_index), prn_a.shape)
         return np.array([self._draw(p, k)[1] for p, k in zip(prn_a, pas, strict=True)], dtype=float)
+
+
+def rac_to_ecef(rac_m: F64, pos_ecef_m: F64, vel_ecef_mps: F64) -> F64:
+    """(radial, along, cross) components (..., 3) to ECEF at satellite states (..., 3).
+
+    radial = r/|r|, cross = (r x v)/|r x v|, along = cross x radial.
+    """
+    r = np.asarray(pos_ecef_m, dtype=float)
+    v = np.asarray(vel_ecef_mps, dtype=float)
+    rac = np.asarray(rac_m, dtype=float)
+    u_r = r / np.linalg.norm(r, axis=-1, keepdims=True)
+    h = _cross3(r, v)
+    u_c = h / np.linalg.norm(h, axis=-1, keepdims=True)
+    u_a = _cross3(u_c, u_r)
+    return rac[..., :1] * u_r + rac[..., 1:2] * u_a + rac[..., 2:3] * u_c
+
+
+def _cross3(a: F64, b: F64) -> F64:
+    """``a x b`` along the last axis (what ``np.cross`` computes, without its overhead)."""
+    out = np.empty(np.broadcast_shapes(a.shape, b.shape))
+    out[..., 0] = a[..., 1] * b[..., 2] - a[..., 2] * b[..., 1]
+    out[..., 1] = a[..., 2] * b[..., 0] - a[..., 0] * b[..., 2]
+    out[..., 2] = a[..., 0] * b[..., 1] - a[..., 1] * b[..., 0]
+    return out

@@ -31,6 +31,7 @@ TCXO h0 = 2e-19, h-2 = 2e-20; OCXO h0 = 2e-25, h-2 = 6e-25).
 
 from __future__ import annotations
 
+import functools
 from dataclasses import dataclass, field
 
 import numpy as np
@@ -137,6 +138,19 @@ def allan_variance_theory(osc: OscillatorClass, tau_s: float | F64) -> F64:
     return osc.h0 / (2.0 * tau) + (2.0 * np.pi**2 / 3.0) * osc.h_m2 * tau
 
 
+@functools.lru_cache(maxsize=1024)
+def _process_noise_cholesky(osc: OscillatorClass, dt_s: float) -> tuple[float, float, float]:
+    """Cholesky factor ``(l11, l21, l22)`` of :func:`clock_process_noise` (cached: a run uses one ``dt``).
+
+    ``q_drift`` may be 0 (pure white FM): the semidefinite case gives ``l22 = 0``.
+    """
+    q = clock_process_noise(osc, dt_s)
+    l11 = np.sqrt(q[0, 0])
+    l21 = q[1, 0] / l11 if l11 > 0 else 0.0
+    l22 = np.sqrt(max(q[1, 1] - l21**2, 0.0))
+    return l11, l21, l22
+
+
 def step_clock_states(state: F64, dt_s: float, osc: OscillatorClass, rng: np.random.Generator) -> F64:
     """Propagate clock state(s) ``(..., 2)`` = (bias m, drift m/s) by ``dt_s`` with exact noise.
 
@@ -146,11 +160,7 @@ def step_clock_states(state: F64, dt_s: float, osc: OscillatorClass, rng: np.ran
     x = np.asarray(state, dtype=float)
     if dt_s <= 0.0:
         return x.copy()
-    q = clock_process_noise(osc, dt_s)
-    # Cholesky of a 2x2 PSD matrix; q_drift may be 0 (pure white FM): handle semidefinite.
-    l11 = np.sqrt(q[0, 0])
-    l21 = q[1, 0] / l11 if l11 > 0 else 0.0
-    l22 = np.sqrt(max(q[1, 1] - l21**2, 0.0))
+    l11, l21, l22 = _process_noise_cholesky(osc, float(dt_s))
     z = rng.standard_normal(x.shape)
     w0 = l11 * z[..., 0]
     w1 = l21 * z[..., 0] + l22 * z[..., 1]
@@ -204,7 +214,11 @@ class ReceiverClock:
         if dt < -1e-9:
             raise ValueError(f"clock cannot go back in time ({self.t_s} -> {t_s})")
         if self.config.enabled and dt > 0:
-            self.state = step_clock_states(self.state, dt, self.config.oscillator, self.rng)
+            # step_clock_states for one clock, in scalars (same draws and arithmetic).
+            l11, l21, l22 = _process_noise_cholesky(self.config.oscillator, float(dt))
+            z0, z1 = self.rng.standard_normal(2)
+            b, d = self.state
+            self.state = np.array([b + dt * d + l11 * z0, d + (l21 * z0 + l22 * z1)])
             thr = self.config.ms_jump_threshold_s
             if thr is not None and abs(self.state[0]) > thr * SPEED_OF_LIGHT_MPS:
                 n_ms = np.round(self.state[0] / (1e-3 * SPEED_OF_LIGHT_MPS))
