@@ -1,20 +1,40 @@
-"""Built-in nominal GPS constellation: the baseline 24-slot constellation of the SPS PS.
+"""Built-in nominal GPS constellation: the SPS PS 24-slot constellation, expanded (27) or baseline.
 
-Slot table
-----------
-Six orbital planes A-F, four slots each, given as right ascension of the ascending node
-(RAAN) and argument of latitude at the defined epoch 1993-07-01 00:00:00 UTC, when the
-Greenwich hour angle (of the FK5/J2000 equinox) was 18h36m14.4s = 279.06 deg. Reference
-orbit: circular (e = 0; tolerance 0-0.02), semi-major axis 26 559.7 km, inclination
-55 deg. Source: GPS SPS Performance Standard, "Reference Orbit Slot Assignments as of
-the Defined Epoch" (Table 3-1 of the 2001 edition; the same baseline 24 slots are Table
-3.1-1 of the 2008 and 2020 editions, which add expandable slots not used here). The values
-below were reproduced from those tables as quoted in public copies; Kaplan & Hegarty (2006)
-Table 3.1 prints slot D3's argument of latitude as 35.136 deg instead of 35.156 deg (used
-here); the difference (0.02 deg, ~10 km along track) is immaterial to a sky plot.
+Slot tables
+-----------
+Six orbital planes A-F, given as right ascension of the ascending node (RAAN) and argument
+of latitude at the defined epoch 1993-07-01 00:00:00 UTC, when the Greenwich hour angle (of
+the FK5/J2000 equinox) was 18h36m14.4s = 279.06 deg. Reference orbit: circular (e = 0;
+tolerance 0-0.02), semi-major axis 26 559.7 km, inclination 55 deg.
 
-PRN numbers 1-24 are assigned to slots A1, A2, ..., F4 in order. **They are not the PRNs
-that occupied those slots on any real date**: use a RINEX navigation file for a real sky.
+* **Baseline 24 slots** (``slots="baseline24"``): four slots per plane. GPS SPS Performance
+  Standard, "Reference Orbit Slot Assignments as of the Defined Epoch" (Table 3-1 of the
+  2001 edition, Table 3.1-1 of the 2008 and 2020 editions). Kaplan & Hegarty (2006) Table
+  3.1 prints slot D3's argument of latitude as 35.136 deg instead of 35.156 deg (used here);
+  the difference (0.02 deg, ~10 km along track) is immaterial to a sky plot.
+* **Expandable 24-slot constellation, fully expanded: 27 slots** (``slots="expandable27"``,
+  the default). SPS PS 2008 and 2020, section 3.1 and Table 3.1-2 ("Expandable Slots"):
+  slots B1, D2 and F2 may each be split into a fore (``F``) and an aft (``A``) slot, which
+  the Air Force completed in June 2011 (GPS.gov, "Space Segment": the "Expandable 24"
+  configuration), i.e. 27 satellites in defined slots. Table 3.1-2 values used
+  here (RAAN deg, argument of latitude deg): B1F (332.847, 94.916), B1A (332.847, 66.356),
+  D2F (92.847, 282.676), D2A (92.847, 257.976), F2F (212.847, 0.456), F2A (212.847, 334.016).
+  They were reproduced from public copies of the table, not from the PDF itself: check them
+  against it before relying on them for anything but a realistic sky (an error of a few
+  degrees along an orbit moves one satellite by a few degrees in the sky).
+
+**Why 27 by default.** The user-facing default should give the sky a car sees on a typical
+day. The real GPS constellation has held 30-32 healthy satellites in orbit since about 2008
+(the paper's February 2010 test was in such a sky; the extra ones are spares parked next to
+occupied slots); the 24 baseline slots give 5-8 satellites above 10 deg at Calgary, where
+the operational sky gives 8-12. The fully expanded 27-slot constellation is the largest
+*documented* slot table (Table 3.1-2), and it raises the mean count above 10 deg from
+~7.2 to ~8.1 (the visible cap is ~30 % of the orbit shell). For a real date's sky, give a
+RINEX navigation file (``sensors.gnss.ephemeris``).
+
+PRN numbers 1..N are assigned to the slots in the order of :data:`SLOTS_BASELINE` /
+:data:`SLOTS_EXPANDABLE`. **They are not the PRNs that occupied those slots on any real
+date**: use a RINEX navigation file for a real sky.
 
 Propagation model
 -----------------
@@ -57,8 +77,8 @@ SLOT_EPOCH_GPS_S = utc_to_gps_s(datetime(1993, 7, 1))
 SLOT_EPOCH_GHA_RAD = np.deg2rad((18.0 + 36.0 / 60.0 + 14.4 / 3600.0) * 15.0)
 VALIDITY_HALF_SPAN_S = 7.0 * 86_400.0
 
-# (slot, RAAN deg, argument of latitude deg) at SLOT_EPOCH.
-SLOTS: tuple[tuple[str, float, float], ...] = (
+# (slot, RAAN deg, argument of latitude deg) at SLOT_EPOCH: SPS PS Table 3.1-1 (baseline 24 slots).
+SLOTS_BASELINE: tuple[tuple[str, float, float], ...] = (
     ("A1", 272.847, 268.126),
     ("A2", 272.847, 161.786),
     ("A3", 272.847, 11.676),
@@ -84,6 +104,21 @@ SLOTS: tuple[tuple[str, float, float], ...] = (
     ("F3", 212.847, 105.206),
     ("F4", 212.847, 135.346),
 )
+SLOTS = SLOTS_BASELINE  # backwards-compatible name
+
+# SPS PS (2008, 2020) Table 3.1-2: the expandable slots B1, D2, F2, each split fore/aft.
+EXPANDED_SLOTS: dict[str, tuple[tuple[str, float, float], tuple[str, float, float]]] = {
+    "B1": (("B1F", 332.847, 94.916), ("B1A", 332.847, 66.356)),
+    "D2": (("D2F", 92.847, 282.676), ("D2A", 92.847, 257.976)),
+    "F2": (("F2F", 212.847, 0.456), ("F2A", 212.847, 334.016)),
+}
+SLOTS_EXPANDABLE: tuple[tuple[str, float, float], ...] = tuple(
+    s for slot in SLOTS_BASELINE for s in EXPANDED_SLOTS.get(slot[0], (slot,))
+)
+SLOT_TABLES: dict[str, tuple[tuple[str, float, float], ...]] = {
+    "baseline24": SLOTS_BASELINE,
+    "expandable27": SLOTS_EXPANDABLE,
+}
 
 
 def j2_node_rate_radps(a_m: float = NOMINAL_A_M, inc_rad: float = NOMINAL_INCLINATION_RAD) -> float:
@@ -95,32 +130,40 @@ def j2_node_rate_radps(a_m: float = NOMINAL_A_M, inc_rad: float = NOMINAL_INCLIN
 
 
 class NominalConstellation:
-    """The 24-slot nominal GPS constellation around a chosen date; implements ``Ephemeris``.
+    """The nominal GPS constellation around a chosen date; implements ``Ephemeris``.
 
     Parameters
     ----------
     epoch_gps_s : GPS seconds of the scenario (e.g. ``utc_to_gps_s(start)``). Elements are
         referenced to this instant (like an almanac's time of applicability) and states
         are given for ``epoch +- 7 days``.
+    slots : ``"expandable27"`` (default: SPS PS 2008/2020 Table 3.1-2, the 24-slot
+        constellation with its three expandable slots split, 27 satellites) or
+        ``"baseline24"`` (Table 3.1-1, 24 satellites).
     """
 
-    def __init__(self, epoch_gps_s: float):
+    def __init__(self, epoch_gps_s: float, *, slots: str = "expandable27"):
+        if slots not in SLOT_TABLES:
+            raise UserError(f"unknown nominal slot table {slots!r}", field="sensors.gnss.ephemeris",
+                            fix=f"use one of {sorted(SLOT_TABLES)}")
+        table = SLOT_TABLES[slots]
+        self.slots = slots
         self.epoch_gps_s = float(epoch_gps_s)
         node_rate = j2_node_rate_radps()
         u_rate = 2.0 * (OMEGA_E_RADPS - node_rate)
         dt = self.epoch_gps_s - SLOT_EPOCH_GPS_S
-        raan = np.deg2rad([s[1] for s in SLOTS])
-        u0 = np.deg2rad([s[2] for s in SLOTS])
+        raan = np.deg2rad([s[1] for s in table])
+        u0 = np.deg2rad([s[2] for s in table])
         # Earth-fixed longitude of the node at the epoch, and argument of latitude.
         lon_node = raan - SLOT_EPOCH_GHA_RAD + (node_rate - OMEGA_E_RADPS) * dt
         u_epoch = np.mod(u0 + u_rate * dt, 2.0 * np.pi)
-        n = len(SLOTS)
+        n = len(table)
         _, sow = gps_week_sow(self.epoch_gps_s)
         sqrt_a = np.sqrt(NOMINAL_A_M)
         from v2v.sensors.gnss.ephemeris import GM_MPS2
 
         zeros = np.zeros(n)
-        self.slot_names = tuple(s[0] for s in SLOTS)
+        self.slot_names = tuple(s[0] for s in table)
         self.elements = KeplerElements(
             prn=np.arange(1, n + 1, dtype=np.int64),
             sqrt_a_sqrtm=np.full(n, sqrt_a),
@@ -156,7 +199,7 @@ class NominalConstellation:
         return self.epoch_gps_s - VALIDITY_HALF_SPAN_S, self.epoch_gps_s + VALIDITY_HALF_SPAN_S
 
     def sv_states(self, prn: ArrayLike, t_gps_s: float | ArrayLike) -> SvStates:
-        """States in the ECEF frame at ``t``; an unknown PRN (not 1-24) gives NaN and ``healthy=False``.
+        """States in the ECEF frame at ``t``; an unknown PRN (not 1..N) gives NaN and ``healthy=False``.
 
         Raises
         ------
