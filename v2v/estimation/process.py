@@ -26,6 +26,15 @@ shared between the azimuth and the (loosely modelled, sigma 10 m/s) relative pos
 which rotates the estimated cluster. With the yaw-rate state the prediction follows the
 turn (see the README's azimuth study for the numbers).
 
+What limits the estimated azimuth is not this model but what the measurements say about it:
+with the cars in line, the lead's bearings fix the cluster's shape and the azimuth only
+together, and the rotation of the whole cluster about the lead is seen by GPS alone, so the
+azimuth error is about (GPS across-track error) / (distance). Measured on the paper's in-line
+3-car cluster (experiments/RESULTS.md section 2): looser (0.5 deg/sqrt(s), 20 deg/s, 2 s) and
+tighter (0.2-0.3 deg/sqrt(s), 10-30 deg/s, 3-10 s) settings leave the across-track error
+unchanged, and the tighter ones lag a sustained 16 deg/s turn (azimuth std 1.5-4.3 deg instead
+of 0.38 deg). Averaging the GPS rotation over longer would need a measured yaw rate.
+
 Discretization uses the continuous noise model (Pabolleta (2020) eq. 3.6,
 ``Q = int_0^dt Phi(t) G Qc G^T Phi(t)^T dt``) evaluated exactly with Van Loan's
 matrix exponential (Van Loan 1978)::
