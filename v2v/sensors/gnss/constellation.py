@@ -24,13 +24,14 @@ tolerance 0-0.02), semi-major axis 26 559.7 km, inclination 55 deg.
   degrees along an orbit moves one satellite by a few degrees in the sky).
 
 **Why 27 by default.** The user-facing default should give the sky a car sees on a typical
-day. The real GPS constellation has held 30-32 healthy satellites in orbit since about 2008
-(the paper's February 2010 test was in such a sky; the extra ones are spares parked next to
-occupied slots); the 24 baseline slots give 5-8 satellites above 10 deg at Calgary, where
-the operational sky gives 8-12. The fully expanded 27-slot constellation is the largest
-*documented* slot table (Table 3.1-2), and it raises the mean count above 10 deg from
-~7.2 to ~8.1 (the visible cap is ~30 % of the orbit shell). For a real date's sky, give a
-RINEX navigation file (``sensors.gnss.ephemeris``).
+day. The operational GPS constellation has had about 30 healthy satellites since the late
+2000s (the paper's February 2010 test was in such a sky; the extra ones are spares next to
+occupied slots): the broadcast file of 2021-04-28 puts 11 above 10 deg at Calgary at the
+default start time, the 24 baseline slots 6 (5-8 over the day, mean 6.8). The fully expanded
+27-slot table is the largest *documented* slot table (Table 3.1-2): 8 at the start time,
+mean 7.8 over the day (a uniformly filled shell would give N x 0.30: 7.2 and 8.1). It is
+still a conservative sky; for a real date's sky, give a RINEX navigation file
+(``sensors.gnss.ephemeris``).
 
 PRN numbers 1..N are assigned to the slots in the order of :data:`SLOTS_BASELINE` /
 :data:`SLOTS_EXPANDABLE`. **They are not the PRNs that occupied those slots on any real
@@ -104,7 +105,6 @@ SLOTS_BASELINE: tuple[tuple[str, float, float], ...] = (
     ("F3", 212.847, 105.206),
     ("F4", 212.847, 135.346),
 )
-SLOTS = SLOTS_BASELINE  # backwards-compatible name
 
 # SPS PS (2008, 2020) Table 3.1-2: the expandable slots B1, D2, F2, each split fore/aft.
 EXPANDED_SLOTS: dict[str, tuple[tuple[str, float, float], tuple[str, float, float]]] = {
