@@ -117,7 +117,7 @@ def main(argv: list[str] | None = None) -> int:
     pair_df.to_csv(out / "fcw_pairs.csv", index=False)
     ev_df.to_csv(out / "fcw_events.csv", index=False)
     br_df.to_csv(out / "fcw_braking.csv", index=False)
-    sky = str(args.rinex) if args.rinex else "nominal 24-slot constellation"
+    sky = str(args.rinex) if args.rinex else "nominal 27-slot constellation"
     n_brk = int(len(br_df))
     md = [
         "# Forward collision warning from V2V relative positioning",

@@ -401,7 +401,7 @@ def main(argv: list[str] | None = None) -> int:
     pv_all.to_csv(out / "gnss_per_vehicle.csv", index=False)
     _plot_overview(runs, counts, above, out / "gnss_sats_and_nlos.png")
     sky_df = pd.DataFrame(skyplots)
-    ephem = str(args.rinex) if args.rinex else "nominal 24-slot constellation"
+    ephem = str(args.rinex) if args.rinex else "nominal 27-slot constellation"
     md = [
         "# GNSS in three kinds of street",
         "",

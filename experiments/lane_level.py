@@ -150,7 +150,7 @@ def main(argv: list[str] | None = None) -> int:
     short = ["variant", "solution", "initialized", "lane_model_ok", "correct_lane", "correct_lane_geom",
              "across_abs_p50_m", "across_abs_p95_m", "across_abs_p99_m", "across_mi_rate_3sigma",
              "across_mi_rate_pl", "across_pl_mean_m", "across_availability", "across_hmi_rate"]
-    sky = str(args.rinex) if args.rinex else "nominal 24-slot constellation"
+    sky = str(args.rinex) if args.rinex else "nominal 27-slot constellation"
     md = [
         "# Lane-level relative positioning",
         "",
