@@ -307,6 +307,18 @@ def run_scenario(
             fbar.close()
             timing["estimation"] = time.perf_counter() - t0
         epochs = pd.concat(records, ignore_index=True) if records else pd.DataFrame()
+        # Memory: the whole-run inputs (SUMO steps, GNSS epochs, UWB/bearing records, the
+        # exchange's delivered events) are not needed by the metrics: reduce them to their
+        # summary numbers now and free them before the metrics build their tables.
+        n_gnss_epochs = len(gnss_epochs)
+        n_sats = [ep.n for _, eps in gnss_epochs for ep in eps.values()]
+        nlos = sum(int((~ep.los).sum()) for _, eps in gnss_epochs for ep in eps.values())
+        uwb_summary = _uwb_summary(uwb)
+        n_bearings = int(bearings.n) if bearings is not None else 0
+        records.clear()
+        steps.clear()
+        truth_by_t.clear()
+        gnss_epochs = cl_epochs = events = uwb = bearings = rec = ekf = None  # noqa: F841 (released)
 
         # 6. metrics and outputs -------------------------------------------------------
         t0 = time.perf_counter()
@@ -322,8 +334,6 @@ def run_scenario(
         timing["metrics_io"] = time.perf_counter() - t0
         wall = time.perf_counter() - wall0
         counts = {k.value: sum(1 for e in events_log if e["kind"] == k.value) for k in EventKind}
-        n_sats = [ep.n for _, eps in gnss_epochs for ep in eps.values()]
-        nlos = sum(int((~ep.los).sum()) for _, eps in gnss_epochs for ep in eps.values())
         summary: dict[str, Any] = {
             "v2v_version": __version__,
             "scenario": scenario.name,
@@ -339,12 +349,12 @@ def run_scenario(
             "leads": [f"{c.name}.{c.lead}" for c in scenario.clusters],
             "solutions": [s.name for s in scenario.solutions],
             "gnss": {
-                "epochs": len(gnss_epochs),
+                "epochs": n_gnss_epochs,
                 "satellites_tracked_mean": float(np.mean(n_sats)) if n_sats else 0.0,
                 "nlos_fraction": nlos / max(sum(n_sats), 1),
             },
-            "uwb": _uwb_summary(uwb),
-            "bearing": {"measurements": int(bearings.n) if bearings is not None else 0},
+            "uwb": uwb_summary,
+            "bearing": {"measurements": n_bearings},
             "exchange": {"sent": exchange_stats.sent, "lost": exchange_stats.lost, "late": exchange_stats.late}
             if scenario.clusters else {},
             "event_counts": counts,
