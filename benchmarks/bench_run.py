@@ -1,73 +1,134 @@
 """End-to-end speed: real-time factor (simulated s / wall s) vs cluster size, and where the time goes.
 
 Configuration (issue 7): 10 Hz GNSS, UWB between all pairs at ~3 Hz, bearings from every
-vehicle, one GPS+UWB+Bearing solution, replay off and on, on `open_highway` (lanes 0-2).
-Each case runs in a fresh process (libsumo: one simulation per process), one after
-another, so the numbers are single-core wall times measured in this one invocation.
+vehicle, one GPS+UWB+Bearing solution, replay off and on, on `open_highway` (lanes 0-2;
+one lane for N <= 3). Each case runs in a fresh process (libsumo: one simulation per
+process), one after another, with BLAS and numba limited to one thread, so the numbers are
+single-core times measured in this one invocation. Per case: the run's own wall time and
+stage breakdown (``summary.json`` ``wall_s``, ``timing_s``), its CPU time, and the process
+start-up (interpreter + imports, before ``run_scenario``) which a single run also pays.
+
+Monte Carlo (issue 7 item 3): ``--mc-runs`` runs of ``--mc-duration`` s at N = 3 (seeds
+1..mc-runs, same scenario) through the sweep machinery (:func:`v2v.sweep.run_study`: a
+Dask ``LocalCluster`` with ``--mc-workers`` single-threaded worker processes); the wall
+time of the whole study, start-up of the cluster included, is printed.
 
     .venv/bin/python benchmarks/bench_run.py [--sizes 3 10 20 40] [--duration 60] [--out DIR]
+    .venv/bin/python benchmarks/bench_run.py --sizes --mc-runs 100     # Monte Carlo only
 
-Prints a table; nothing is asserted.
+Prints tables; nothing is asserted. The machine may be shared: compare CPU and wall.
 """
 
 from __future__ import annotations
 
 import argparse
 import json
+import os
 import subprocess
 import sys
 import tempfile
+import time
 from pathlib import Path
 
+ONE_THREAD = {k: "1" for k in ("OPENBLAS_NUM_THREADS", "OMP_NUM_THREADS", "MKL_NUM_THREADS", "NUMBA_NUM_THREADS")}
+
+
+def overrides(n: int, duration_s: float) -> list[str]:
+    """The benchmark scenario as ``--set`` overrides of the default scenario."""
+    lanes = "[0]" if n <= 3 else "[0,1,2]"
+    return ['network.name="open_highway"', f"clusters.0.vehicles={n}", f"clusters.0.lanes={lanes}",
+            "clusters.0.time_gap_s=1.5", f"duration_s={duration_s}", "vehicle_types.passenger.max_speed_mps=25.0",
+            'solutions=[{name="GPS+UWB+Bearing", sensors=["gnss","uwb","bearing"]}]']
+
+
 CASE = r"""
-import json, sys, time
+import time
+t_start = time.perf_counter()
+import json, sys
 from v2v.config.scenario import load_scenario
 from v2v.run import run_scenario
-n, dur, replay, out = int(sys.argv[1]), float(sys.argv[2]), sys.argv[3] == "1", sys.argv[4]
-lanes = "[0]" if n <= 3 else "[0,1,2]"
-sc = load_scenario(None, [
-    'network.name="open_highway"', f"clusters.0.vehicles={n}", f"clusters.0.lanes={lanes}",
-    "clusters.0.time_gap_s=1.5", f"duration_s={dur}", "vehicle_types.passenger.max_speed_mps=25.0",
-    'solutions=[{name="GPS+UWB+Bearing", sensors=["gnss","uwb","bearing"]}]',
-])
+n, replay, out = int(sys.argv[1]), sys.argv[2] == "1", sys.argv[3]
+sc = load_scenario(None, json.loads(sys.argv[4]))
+t_imports = time.perf_counter() - t_start
+c0 = time.process_time()
 r = run_scenario(sc, out, quiet=True, replay=replay)
 s = r.summary
-print(json.dumps({"simulated_s": s["simulated_s"], "wall_s": s["wall_s"], "timing_s": s["timing_s"]}))
+print(json.dumps({"simulated_s": s["simulated_s"], "wall_s": s["wall_s"], "cpu_s": time.process_time() - c0,
+                  "startup_s": t_imports, "timing_s": s["timing_s"]}))
 """
 
 
 def run_case(n: int, duration: float, replay: bool, out: Path) -> dict:
-    p = subprocess.run([sys.executable, "-c", CASE, str(n), str(duration), "1" if replay else "0", str(out)],
-                       capture_output=True, text=True, check=True)
-    return json.loads(p.stdout.strip().splitlines()[-1])
+    t0 = time.perf_counter()
+    p = subprocess.run([sys.executable, "-c", CASE, str(n), "1" if replay else "0", str(out),
+                        json.dumps(overrides(n, duration))],
+                       capture_output=True, text=True, check=True, env={**os.environ, **ONE_THREAD})
+    r = json.loads(p.stdout.strip().splitlines()[-1])
+    r["process_s"] = time.perf_counter() - t0
+    return r
+
+
+def run_monte_carlo(n_runs: int, duration: float, workers: int, out: Path) -> dict:
+    """``n_runs`` seeds of the N = 3 case through :func:`v2v.sweep.run_study`."""
+    os.environ.update(ONE_THREAD)  # inherited by the LocalCluster's worker processes
+    from v2v.sweep import load_study, run_study
+
+    study = out / "mc_study.toml"
+    lines = [f"seeds = {{start = 1, count = {n_runs}}}", "replay = false", "", "[set]"]
+    for o in overrides(3, duration):
+        key, val = o.split("=", 1)
+        lines.append(f'"{key}" = {val}')
+    study.write_text("\n".join(lines) + "\n")
+    t0 = time.perf_counter()
+    res = run_study(load_study(study), out / "mc", workers=workers, quiet=True)
+    wall = time.perf_counter() - t0
+    df = res.table
+    ok = df[df["status"] == "ok"]
+    return {"runs": n_runs, "failed": res.failed, "duration_s": duration, "workers": workers, "wall_s": wall,
+            "per_run_wall_mean_s": float(ok["wall_s"].mean()) if len(ok) else float("nan")}
 
 
 def main(argv: list[str] | None = None) -> int:
     ap = argparse.ArgumentParser(description=__doc__.splitlines()[0])
-    ap.add_argument("--sizes", type=int, nargs="+", default=[3, 10, 20, 40])
+    ap.add_argument("--sizes", type=int, nargs="*", default=[3, 10, 20, 40])
     ap.add_argument("--duration", type=float, default=60.0)
-    ap.add_argument("--out", type=Path, default=None, help="write results.json here")
+    ap.add_argument("--no-replay-on", action="store_true", help="only the replay-off cases")
+    ap.add_argument("--mc-runs", type=int, default=0, help="Monte Carlo runs at N = 3 (0 = skip; issue 7: 100)")
+    ap.add_argument("--mc-duration", type=float, default=60.0)
+    ap.add_argument("--mc-workers", type=int, default=2)
+    ap.add_argument("--out", type=Path, default=None, help="write bench_run.json here")
     args = ap.parse_args(argv)
     rows = []
+    mc = None
+    replays = (False,) if args.no_replay_on else (False, True)
     with tempfile.TemporaryDirectory() as tmp:
         for n in args.sizes:
-            for replay in (False, True):
+            for replay in replays:
                 r = run_case(n, args.duration, replay, Path(tmp) / f"n{n}_{int(replay)}")
                 r.update(n=n, replay=replay, rtf=r["simulated_s"] / r["wall_s"])
                 rows.append(r)
                 t = r["timing_s"]
-                print(f"N={n:3d} replay={'on ' if replay else 'off'} simulated {r['simulated_s']:6.1f} s  wall {r['wall_s']:7.1f} s  "
-                      f"RTF {r['rtf']:7.2f}x  | " + "  ".join(f"{k} {v:.2f}" for k, v in t.items()), flush=True)
-    print("\nreal-time factor (simulated s / wall s), one core:")
-    print(f"{'N':>4s} {'replay off':>11s} {'replay on':>10s} {'replay share':>13s}")
-    for n in args.sizes:
-        off = next(r for r in rows if r["n"] == n and not r["replay"])
-        on = next(r for r in rows if r["n"] == n and r["replay"])
-        share = 1.0 - off["wall_s"] / on["wall_s"]
-        print(f"{n:4d} {off['rtf']:11.2f} {on['rtf']:10.2f} {share:13.1%}")
+                print(f"N={n:3d} replay={'on ' if replay else 'off'} simulated {r['simulated_s']:6.1f} s  "
+                      f"wall {r['wall_s']:7.2f} s  cpu {r['cpu_s']:7.2f} s  RTF {r['rtf']:7.1f}x  "
+                      f"start-up {r['startup_s']:.2f} s  process {r['process_s']:.2f} s  | "
+                      + "  ".join(f"{k} {v:.2f}" for k, v in t.items()), flush=True)
+        if args.mc_runs:
+            mc = run_monte_carlo(args.mc_runs, args.mc_duration, args.mc_workers, Path(tmp))
+    if rows:
+        print("\nreal-time factor (simulated s / wall s of the run), one core:")
+        print(f"{'N':>4s} {'replay off':>11s} {'replay on':>10s} {'replay share':>13s} {'RTF incl. start-up':>19s}")
+        for n in args.sizes:
+            off = next(r for r in rows if r["n"] == n and not r["replay"])
+            on = next((r for r in rows if r["n"] == n and r["replay"]), None)
+            share = f"{1.0 - off['wall_s'] / on['wall_s']:13.1%}" if on else f"{'-':>13s}"
+            rtf_on = f"{on['rtf']:10.1f}" if on else f"{'-':>10s}"
+            print(f"{n:4d} {off['rtf']:11.1f} {rtf_on} {share} {off['simulated_s'] / off['process_s']:19.1f}")
+    if mc:
+        print(f"\nMonte Carlo: {mc['runs']} runs x {mc['duration_s']:.0f} s, N = 3, {mc['workers']} worker processes: "
+              f"{mc['wall_s']:.1f} s wall ({mc['failed']} failed; mean run wall {mc['per_run_wall_mean_s']:.2f} s)")
     if args.out:
         args.out.mkdir(parents=True, exist_ok=True)
-        (args.out / "bench_run.json").write_text(json.dumps(rows, indent=2))
+        (args.out / "bench_run.json").write_text(json.dumps({"cases": rows, "monte_carlo": mc}, indent=2))
     return 0
 
 

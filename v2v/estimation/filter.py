@@ -87,9 +87,18 @@ from numpy.typing import NDArray
 from scipy.stats import chi2, norm
 
 from v2v.errors import UserError
-from v2v.estimation import models
-from v2v.estimation.layout import AZIMUTH, AZIMUTH_RATE, UWB, VEHICLE, StateLayout, uwb_pair_key
+from v2v.estimation import kernels, models
+from v2v.estimation.layout import AMBIGUITY, AZIMUTH, AZIMUTH_RATE, UWB, VEHICLE, StateLayout, uwb_pair_key
 from v2v.estimation.models import GnssGeometry, Row
+from v2v.estimation.phase import (
+    LAMBDA_L1_M,
+    PhaseConfig,
+    PhaseStatus,
+    SlipDetector,
+    resolve_vehicle,
+    sd_phase_row,
+    sd_range_row,
+)
 from v2v.estimation.process import (
     ProcessNoiseConfig,
     azimuth_block,
@@ -111,6 +120,8 @@ KIND_UWB = "uwb"
 KIND_BEARING = "bearing"
 KIND_CONSTRAINT = "uwb_constraint"
 KIND_HEIGHT = "height_aiding"
+KIND_SD_PHASE = "sd_phase"
+KIND_AMB_FIX = "ambiguity_fix"
 
 
 @dataclass(frozen=True, kw_only=True)
@@ -159,6 +170,8 @@ class FilterConfig:
     uninitialized_variance : variance of a block before it is initialized.
     nonlinear_fraction : a UWB range or bearing is deferred while its neglected
         second-order variance exceeds this fraction of its measurement variance.
+    phase : carrier-phase settings (:class:`v2v.estimation.phase.PhaseConfig`); None = the
+        solution does not use carrier phase.
     height_aiding_sigma_m : when set, epochs without GNSS add a pseudo-measurement
         "relative up = 0 +- sigma" per vehicle (cars on one locally flat road). UWB and
         bearings carry no vertical information, so without it the relative height random-
@@ -185,6 +198,7 @@ class FilterConfig:
     divergence_window: int = 50
     divergence_reject_fraction: float = 0.5
     divergence_position_sigma_m: float = 1000.0
+    phase: PhaseConfig | None = None
 
     def __post_init__(self) -> None:
         if not 0.0 < self.significance < 1.0:
@@ -225,49 +239,15 @@ def scalar_update(x: F64, P: F64, idx: NDArray[np.int64], val: F64, innovation: 
     ``p = P h^T`` uses only the columns ``idx`` (O(n k)); ``S = h p + r`` (thesis eq. 3.23);
     rejected without touching x, P if ``|nu| > gate_k sqrt(S)`` (eq. 3.27) or anything is
     non-finite; else ``x += p nu / S``, ``P -= q q^T`` with ``q = p / sqrt(S)`` (= ``k k^T S``
-    with ``k = p / S``: eq. 3.16-3.18 in a form that keeps P exactly symmetric). The O(n^2)
-    rank-1 step runs in place through BLAS ``dger`` (one pass over P, no temporaries) when
-    :func:`_symmetric_blas_rank1` found it exactly symmetric, else through numpy.
+    with ``k = p / S``: eq. 3.16-3.18 in a form that keeps P exactly symmetric). Runs the
+    compiled :func:`v2v.estimation.kernels.scalar_update` (one pass over P, no
+    temporaries); x and P must be writable C-contiguous float64 arrays, P symmetric.
     """
-    p = P[:, idx] @ val
-    s = float(val @ p[idx]) + r_var
-    innovation = float(innovation)
-    if not (math.isfinite(innovation) and math.isfinite(s) and s > 0.0 and np.isfinite(p).all()):
-        return s, False
-    if gate_k is not None and abs(innovation) > gate_k * math.sqrt(s):
-        return s, False
-    x += p * (innovation / s)
-    # P -= q q^T with q = p / sqrt(S): q_i q_j == q_j q_i exactly, so P stays symmetric
-    q = p * math.sqrt(1.0 / s)
-    if _DGER is not None and P.dtype == np.float64 and P.flags.c_contiguous and P.flags.writeable:
-        out = _DGER(1.0, -q, q, a=P.T, overwrite_a=1)  # BLAS rank-1, in place: one pass over P
-        if not np.may_share_memory(out, P):  # pragma: no cover - f2py made a copy
-            P[...] = out.T
-    else:
-        P -= np.multiply.outer(q, q)
-    return s, True
-
-
-def _symmetric_blas_rank1():
-    """scipy's BLAS ``dger`` when it keeps a symmetric matrix exactly symmetric under
-    ``A -= q q^T`` (checked once on odd sizes that exercise the kernels' tails), else None."""
-    try:
-        from scipy.linalg.blas import dger
-    except ImportError:  # pragma: no cover
-        return None
-    rng = np.random.default_rng(12345)
-    for n in (1, 3, 7, 13, 37, 77, 157, 401):
-        a = rng.normal(size=(n, n))
-        a = a + a.T
-        for _ in range(3):
-            q = rng.normal(size=n) * 10.0 ** rng.uniform(-3.0, 3.0)
-            out = dger(1.0, -q, q, a=a.T, overwrite_a=1)
-            if not np.may_share_memory(out, a) or not np.array_equal(a, a.T):
-                return None
-    return dger
-
-
-_DGER = _symmetric_blas_rank1()
+    idx = np.ascontiguousarray(idx, dtype=np.int64)
+    val = np.ascontiguousarray(val, dtype=np.float64)
+    s, status = kernels.scalar_update(x, P, idx, val, len(idx), float(innovation), float(r_var),
+                                      0.0 if gate_k is None else float(gate_k), gate_k is not None)
+    return s, status == kernels.ACCEPTED
 
 
 def screen_blunders(h: F64, r: F64, sigma: float, k: float) -> NDArray[np.bool_]:
@@ -311,7 +291,9 @@ class ClusterFilterBase(ABC):
     """Sequencing, gating and initialization shared by both engines.
 
     Engines implement: ``_predict_core(dt)``, ``_apply(row, z, r_var, wrap, test)``,
-    ``_set_block(s, mean, cov)``, ``_get_x()``, ``_get_P()``, ``_replace(x, P)``.
+    ``_set_block(s, mean, cov)``, ``_get_x()``, ``_get_P()``, ``_replace(x, P)``; and may
+    replace the per-measurement Python sequences ``_uwb_sequence``, ``_bearing_sequence``,
+    ``_doppler_sequence``, ``_pseudorange_sequence`` (one call per batch, same records).
     """
 
     def __init__(self, layout: StateLayout, config: FilterConfig | None = None):
@@ -323,6 +305,14 @@ class ClusterFilterBase(ABC):
         self._nis_window: dict[str, deque[tuple[float, bool]]] = {}
         self._vehicle_ready = {v: False for v in layout.vehicles}
         self._azimuth_ready = {v: False for v in layout.azimuth_vehicles}
+        pc = self.config.phase
+        self._slips = SlipDetector(pc.slip_threshold_m, pc.max_gap_s) if pc is not None else None
+        self._phase_streak: dict[tuple[str, int], int] = {}
+        self._amb_since: dict[tuple[str, int], float] = {}  # time each SD ambiguity was added
+        #: ambiguity-resolution status per vehicle after the last GNSS epoch (carrier-phase solutions)
+        self.phase_status: dict[str, PhaseStatus] = {}
+        #: vehicles whose last GNSS epoch gave fewer than 4 accepted SD pseudoranges
+        self.gnss_weak: dict[str, bool] = {}
         x0, p0 = self._prior(layout)
         self._replace(x0, p0)
 
@@ -449,7 +439,205 @@ class ClusterFilterBase(ABC):
             for v, (ep, iv, il, _) in per_vehicle.items():
                 if self._vehicle_ready[v] and v not in just_initialized:
                     infos += self._sd_dopplers(v, geo, ep, lead_ep, iv, il)
+        code_ok: dict[str, set[int]] = {}
+        for info in infos:
+            if info.kind == KIND_SD_PR and info.accepted:
+                code_ok.setdefault(info.vehicles[0], set()).add(info.prn)
+        # Fewer than 4 SD pseudoranges (satellites seen by both): the epoch cannot fix the
+        # relative position, so add "relative up = 0" as in epochs without GNSS (MacGougan
+        # (2009) section 5: "a height constraint was employed when fewer than 4 GPS satellites
+        # were available"); UWB and bearings are then no longer deferred for nonlinearity
+        # (:meth:`_nonlinear_fraction`).
+        self.gnss_weak = {v: v not in per_vehicle or len(per_vehicle[v][1]) < 4 for v in lay.vehicles}
+        if self.config.height_aiding_sigma_m is not None:
+            weak = [v for v in lay.vehicles if self.gnss_weak[v] and v not in just_initialized]
+            if weak:
+                infos += self.update_height_aiding(self.config.height_aiding_sigma_m, weak)
+        if self.config.phase is not None:
+            infos += self._update_phase(epochs, lead_ep, geo, code_ok)
         return infos
+
+    # ----------------------------------------------------------------- carrier phase
+    def _update_phase(self, epochs: dict[str, GnssEpoch], lead_ep: GnssEpoch | None,
+                      geo: GnssGeometry, code_ok: dict[str, set[int]]) -> list[UpdateInfo]:
+        """SD carrier-phase updates of every vehicle, then ambiguity resolution
+        (:mod:`v2v.estimation.phase`: lifecycle, slips, LAMBDA, fix-and-hold).
+
+        ``code_ok[v]``: satellites whose SD pseudorange of ``v`` passed its innovation test
+        this epoch. Only their phases are used: an echo-only signal has the same excess
+        path on code and carrier, and a fresh ambiguity on it would absorb that excess and
+        be "fixed" at once when the position is already fixed; its code, metres off, is
+        what the innovation test catches."""
+        pc = self.config.phase
+        assert pc is not None and self._slips is not None
+        slipped = {v: set(ep.prn[self._slips.update(ep)].tolist()) for v, ep in epochs.items()}
+        self.phase_status = {}
+        lay = self.layout
+
+        def usable(ep: GnssEpoch) -> dict[int, int]:
+            ok = (np.isfinite(ep.carrier_cycles) & np.isfinite(ep.pseudorange_m)
+                  & (ep.elevation_rad >= pc.elevation_mask_rad) & (ep.cn0_dbhz >= pc.cn0_mask_dbhz))
+            bad = slipped.get(ep.vehicle_id, set())
+            return {p: i for i, p in enumerate(ep.prn.tolist()) if ok[i] and p not in bad}
+
+        lead_ok = usable(lead_ep) if lead_ep is not None else {}
+        drop: list[tuple[str, tuple[str, int]]] = []
+        adds: list[tuple[tuple[str, int], Row, float]] = []
+        plan: dict[str, tuple[GnssEpoch, dict[int, int]]] = {}
+        x = self._get_x()
+        for v in lay.vehicles:
+            have = {k[1] for k in lay.ambiguity_keys(v)}
+            ep = epochs.get(v)
+            if ep is None or lead_ep is None or not self._vehicle_ready[v]:
+                drop += [(AMBIGUITY, (v, p)) for p in have]
+                continue
+            ok_code = code_ok.get(v, set())
+            mine = {p: i for p, i in usable(ep).items() if p in lead_ok and p in ok_code}
+            for p in have - mine.keys():
+                drop.append((AMBIGUITY, (v, p)))
+                self._count("phase_slip" if p in slipped.get(v, set()) | slipped.get(lay.lead, set())
+                            else "phase_lost")
+            for p in sorted(mine.keys() - have):
+                i, j = mine[p], lead_ok[p]
+                r = sd_range_row(x, lay, geo, v, ep.sv_pos_ecef_m[i], lead_ep.sv_pos_ecef_m[j])
+                z = LAMBDA_L1_M * (float(ep.carrier_cycles[i]) - float(lead_ep.carrier_cycles[j]))
+                adds.append(((v, p), r, z - r.h))
+                self._amb_since[(v, p)] = float(ep.t_s)
+            plan[v] = (ep, mine)
+        self._drop_ambiguities(drop)
+        self._add_ambiguities(adds, pc.sd_phase_var_m2)
+        new_now = {key for key, _, _ in adds}
+        if lead_ep is None:
+            return []
+        out: list[UpdateInfo] = []
+        r_var = pc.sd_phase_var_m2
+        for v, (ep, mine) in plan.items():
+            order, flagged = self._phase_order(v, ep, lead_ep, geo, mine, lead_ok, r_var)
+            results = []
+            for p in order:
+                if (v, p) in new_now:
+                    continue  # its first measurement made the ambiguity (_add_ambiguities)
+                i, j = mine[p], lead_ok[p]
+                row = sd_phase_row(self._get_x(), self.layout, geo, v, p, ep.sv_pos_ecef_m[i],
+                                   lead_ep.sv_pos_ecef_m[j])
+                z = LAMBDA_L1_M * (float(ep.carrier_cycles[i]) - float(lead_ep.carrier_cycles[j]))
+                if p in flagged:
+                    info = self._excluded(KIND_SD_PHASE, (v,), row, z, r_var, p)
+                else:
+                    info = self._scalar(KIND_SD_PHASE, (v,), row, z, r_var, prn=p)
+                if info is None:
+                    continue
+                out.append(info)
+                results.append((p, info.accepted))
+                key = (v, p)
+                self._phase_streak[key] = 0 if info.accepted else self._phase_streak.get(key, 0) + 1
+            n_rej = sum(not a for _, a in results)
+            if len(results) >= 2 and 2 * n_rej > len(results):
+                # most of the vehicle's phases disagree with its state: a wrong fix or an
+                # undetected slip of the first one -> restart all its ambiguities
+                self._count("ambiguity_reset")
+                self._drop_ambiguities([(AMBIGUITY, k) for k in self.layout.ambiguity_keys(v)])
+            else:
+                stale = [(AMBIGUITY, (v, p)) for p, _ in results
+                         if self._phase_streak.get((v, p), 0) >= pc.reset_after_rejections]
+                if stale:
+                    self._count("phase_reset_rejected")
+                    self._drop_ambiguities(stale)
+        if pc.resolve:
+            out += self._resolve_ambiguities(plan)
+        return out
+
+    def _phase_order(self, v: str, ep: GnssEpoch, lead_ep: GnssEpoch, geo: GnssGeometry, mine: dict[int, int],
+                     lead_ok: dict[int, int], r_var: float) -> tuple[list[int], set[int]]:
+        """Order of v's phase updates and the phases the screen leaves out.
+
+        The first-update clock problem (thesis eq. 3.28-3.29) is worse for phase than for
+        code: after the code updates the SD clock is known to decimetres, so the first two or
+        three phases are tested against decimetre S and a slip of one cycle (0.19 m) that both
+        slip tests missed would pass and corrupt the clock. So, as for the pseudoranges, the
+        phases of satellites whose ambiguity is already resolved (variance < 0.05^2 cycles^2)
+        are screened together first by data snooping (:func:`screen_blunders_status` on
+        position + clock, ambiguities held at their values); flagged ones are left out (and
+        counted rejected, so that ``reset_after_rejections`` replaces their ambiguity). Order:
+        the resolved ones from the highest elevation down, then the float ones.
+        """
+        x, P = self._get_x(), self._get_P()
+        el = {p: float(ep.elevation_rad[i]) for p, i in mine.items()}
+        by_el = sorted(mine, key=lambda p: -el[p])
+        # resolved = DD ambiguity against the highest satellite known to < 0.05 cycles (the SD
+        # ambiguities themselves share the SD clock's uncertainty: only differences are sharp)
+        ia = {p: self.layout.ambiguity(v, p) for p in by_el}
+        q = ia[by_el[0]] if by_el else 0
+        held = [p for p in by_el[1:] if P[ia[p], ia[p]] + P[q, q] - 2.0 * P[ia[p], q] < 0.05**2]
+        held = [by_el[0]] + held if held else []
+        flagged: set[int] = set()
+        if len(held) >= 6:  # position + clock + redundancy 2 (as the code screen)
+            h = np.empty((len(held), 4))
+            res = np.empty(len(held))
+            for k, p in enumerate(held):
+                i, j = mine[p], lead_ok[p]
+                row = sd_phase_row(x, self.layout, geo, v, p, ep.sv_pos_ecef_m[i], lead_ep.sv_pos_ecef_m[j])
+                h[k] = row.val[:4]
+                res[k] = LAMBDA_L1_M * (float(ep.carrier_cycles[i]) - float(lead_ep.carrier_cycles[j])) - row.h
+            mask, _ = screen_blunders_status(h, res, math.sqrt(r_var), self._k)
+            flagged = {p for p, f in zip(held, mask.tolist(), strict=True) if f}
+            if flagged:
+                self._count("phase_screened")
+        rest = [p for p in by_el if p not in held]
+        return held + rest, flagged
+
+    def _resolve_ambiguities(self, plan: dict[str, tuple[GnssEpoch, dict[int, int]]]) -> list[UpdateInfo]:
+        """LAMBDA partial fixing per vehicle and fix-and-hold (:func:`v2v.estimation.phase.resolve_vehicle`)."""
+        pc = self.config.phase
+        assert pc is not None
+        out: list[UpdateInfo] = []
+        hold_var = pc.fix_hold_sigma_cycles**2
+        for v, (ep, mine) in plan.items():
+            el = {p: float(ep.elevation_rad[i]) for p, i in mine.items()}
+            t = float(ep.t_s)
+            old = {p for _, p in self.layout.ambiguity_keys(v)
+                   if t - self._amb_since.get((v, p), t) >= pc.ar_min_lock_s - 1e-9}
+            st, todo = resolve_vehicle(self._get_x(), self._get_P(), self.layout, v, el, pc, old)
+            self.phase_status[v] = st
+            for idx, coef, val in todo:
+                row = Row(float(coef @ self._get_x()[idx]), idx, coef)
+                info = self._scalar(KIND_AMB_FIX, (v,), row, val, hold_var, test=False)
+                if info is not None:
+                    self._count("ambiguity_fix_applied")
+        return out
+
+    def _drop_ambiguities(self, drop: list[tuple[str, tuple[str, int]]]) -> None:
+        """Remove (marginalize) SD ambiguity blocks."""
+        if not drop:
+            return
+        new, remap = self.layout.without_blocks(drop)
+        x, P = remap(self._get_x(), self._get_P())
+        self.layout = new
+        self._replace(x, P)
+        for _, key in drop:
+            self._phase_streak.pop(key, None)  # type: ignore[arg-type]
+            self._amb_since.pop(key, None)  # type: ignore[arg-type]
+
+    def _add_ambiguities(self, adds: list[tuple[tuple[str, int], Row, float]], r_var: float) -> None:
+        """New SD ambiguities from their first phase: ``a = nu / lambda`` (``nu = z - h_0(x)``),
+        ``Cov(a, .) = -P H^T / lambda``, ``Var(a) = (H P H^T + r) / lambda^2`` (module
+        :mod:`v2v.estimation.phase`). Taken in turn, so two new ambiguities of one vehicle get
+        their covariance ``H_i P H_j^T / lambda^2`` through the rows already set."""
+        if not adds:
+            return
+        keys = [k for k, _, _ in adds]
+        new, remap = self.layout.with_blocks(AMBIGUITY, keys, mean=np.zeros(len(keys)), variance=np.zeros(len(keys)))
+        x, P = remap(self._get_x(), self._get_P())
+        self.layout = new
+        lam = LAMBDA_L1_M
+        for key, row, nu in adds:
+            ia = new.ambiguity(*key)
+            ph = P[:, row.idx] @ row.val
+            x[ia] = nu / lam
+            P[ia, :] = -ph / lam
+            P[:, ia] = -ph / lam
+            P[ia, ia] = (float(row.val @ ph[row.idx]) + r_var) / lam**2
+        self._replace(x, P)
 
     def _first_unflagged_order(self, h_pred: F64, val: F64, z: F64, sigma: float,
                                cols: int) -> tuple[NDArray[np.int64], NDArray[np.bool_], bool]:
@@ -590,15 +778,40 @@ class ClusterFilterBase(ABC):
         h_pred, val = rows.all(self._get_x())
         # screen on (velocity, drift): the last 4 entries of the row
         order, excluded, _ = self._first_unflagged_order(h_pred, val, z, np.sqrt(r_var), 4)
+        return self._doppler_sequence(v, rows, z, order, excluded, ep.prn[iv], r_var)
+
+    def _pseudorange_sequence(self, v: str, rows: models.SdPseudorangeRows, z: F64, order: NDArray[np.int64],
+                              excluded: NDArray[np.bool_], prns: NDArray, r_var: float) -> list[UpdateInfo]:
+        """Engine hook (default: one Python scalar update per pseudorange): ``rows`` in
+        ``order``, each re-linearized at the current state; ``excluded`` ones reported as
+        rejected. Same records as the loop of :meth:`_sd_pseudoranges` (which records the
+        tests in the NIS window afterwards)."""
         out = []
         zl = z.tolist()
-        prns = ep.prn[iv].tolist()
+        prn_l = prns.tolist()
         for o in order.tolist():
             row = rows.row(self._get_x(), o)
             if excluded[o]:
-                info = self._excluded(KIND_SD_DOPPLER, (v,), row, zl[o], r_var, prns[o])
+                info = self._excluded(KIND_SD_PR, (v,), row, zl[o], r_var, prn_l[o])
             else:
-                info = self._scalar(KIND_SD_DOPPLER, (v,), row, zl[o], r_var, prn=prns[o])
+                info = self._scalar(KIND_SD_PR, (v,), row, zl[o], r_var, prn=prn_l[o])
+            if info is not None:
+                out.append(info)
+        return out
+
+    def _doppler_sequence(self, v: str, rows: models.SdDopplerRows, z: F64, order: NDArray[np.int64],
+                          excluded: NDArray[np.bool_], prns: NDArray, r_var: float) -> list[UpdateInfo]:
+        """Engine hook (default: one Python scalar update per Doppler): ``rows`` in ``order``,
+        each re-linearized at the current state; ``excluded`` ones reported as rejected."""
+        out = []
+        zl = z.tolist()
+        prn_l = prns.tolist()
+        for o in order.tolist():
+            row = rows.row(self._get_x(), o)
+            if excluded[o]:
+                info = self._excluded(KIND_SD_DOPPLER, (v,), row, zl[o], r_var, prn_l[o])
+            else:
+                info = self._scalar(KIND_SD_DOPPLER, (v,), row, zl[o], r_var, prn=prn_l[o])
             if info is not None:
                 out.append(info)
         return out
@@ -714,27 +927,43 @@ class ClusterFilterBase(ABC):
 
     # ----------------------------------------------------------------- UWB
     def update_uwb(self, ranges: UwbRanges) -> list[UpdateInfo]:
-        """One scalar update per UWB range (the caller has predicted to the time tag)."""
+        """One scalar update per UWB range (the caller has predicted to the time tag).
+
+        Usable ranges (:meth:`_pair_usable`) go, in measurement order, through the engine's
+        :meth:`_uwb_sequence`.
+        """
+        use = self._usable_pairs(KIND_UWB, ranges.a, ranges.b, ranges.range_m)
+        if not use:
+            return []
+        return self._uwb_sequence([ranges.a[k] for k in use], [ranges.b[k] for k in use],
+                                  np.asarray(ranges.range_m, dtype=float)[use])
+
+    def _usable_pairs(self, kind: str, a: tuple[str, ...], b: tuple[str, ...], z: F64) -> list[int]:
+        """Indices of the measurements that pass :meth:`_pair_usable` (which counts the others)."""
         lay = self.layout
         known = {lay.lead, *lay.vehicles}
+        zl = np.asarray(z, dtype=float).tolist()
+        return [k for k in range(len(zl)) if self._pair_usable(kind, a[k], b[k], zl[k], known)]
+
+    def _uwb_sequence(self, a_list: list[str], b_list: list[str], z: F64) -> list[UpdateInfo]:
+        """Engine hook (default: one Python scalar update per range): sequential updates of
+        usable ranges, each re-linearized at the current state, with the second-order terms
+        and deferral rule of :meth:`_linear_enough`, then the bound constraints."""
+        lay = self.layout
         r_var = self.config.noise.uwb_sigma_m**2
         out = []
-        for k in range(ranges.n):
-            a, b = ranges.a[k], ranges.b[k]
-            z = float(ranges.range_m[k])
-            if not self._pair_usable(KIND_UWB, a, b, z, known):
-                continue
+        for a, b, zk in zip(a_list, b_list, z.tolist(), strict=True):
             x = self._get_x()
             d = models.rel_position(x, lay, b) - models.rel_position(x, lay, a)
             m, h2_var = self._second_order(a, b, _range_hessian(d))
-            if not h2_var <= self.config.nonlinear_fraction * r_var:  # _linear_enough
+            if not h2_var <= self._nonlinear_fraction(a, b) * r_var:  # _linear_enough
                 self._count("uwb_deferred_nonlinear")
                 continue
             row = models.uwb_range(x, lay, a, b, use_bias_scale=self.config.use_uwb_bias_scale)
             # second-order EKF terms (Gelb 1974 sec. 6.1): E[f(d)] ~ f + tr(H2 P_d)/2 and the
             # neglected term's variance tr((H2 P_d)^2)/2 added to R
             row = Row(row.h + 0.5 * float(m.trace()), row.idx, row.val)
-            info = self._scalar(KIND_UWB, (a, b), row, z, r_var + h2_var)
+            info = self._scalar(KIND_UWB, (a, b), row, zk, r_var + h2_var)
             if info is None:
                 continue
             out.append(info)
@@ -779,41 +1008,50 @@ class ClusterFilterBase(ABC):
 
     # ----------------------------------------------------------------- bearings
     def update_bearings(self, bearings: Bearings) -> list[UpdateInfo]:
-        """One scalar update per bearing; azimuth known (reported) unless a has an azimuth state."""
+        """One scalar update per bearing; azimuth known (reported) unless a has an azimuth state.
+
+        Usable bearings (:meth:`_pair_usable`) go, in measurement order, through the engine's
+        :meth:`_bearing_sequence`.
+        """
+        use = self._usable_pairs(KIND_BEARING, bearings.a, bearings.b, bearings.bearing_rad)
+        if not use:
+            return []
+        return self._bearing_sequence([bearings.a[k] for k in use], [bearings.b[k] for k in use],
+                                      np.asarray(bearings.bearing_rad, dtype=float)[use],
+                                      np.asarray(bearings.azimuth_reported_rad, dtype=float)[use])
+
+    def _bearing_sequence(self, a_list: list[str], b_list: list[str], z: F64, az_reported: F64) -> list[UpdateInfo]:
+        """Engine hook (default: one Python scalar update per bearing): sequential updates,
+        each re-linearized at the current state (second-order terms and deferral as for UWB;
+        an estimated azimuth is initialized at its first bearing)."""
         lay = self.layout
-        known = {lay.lead, *lay.vehicles}
         r_var = self.config.noise.bearing_sigma_rad**2
         out = []
-        for k in range(bearings.n):
-            a, b = bearings.a[k], bearings.b[k]
-            z = float(bearings.bearing_rad[k])
-            if not self._pair_usable(KIND_BEARING, a, b, z, known):
-                continue
+        for a, b, zk, az in zip(a_list, b_list, z.tolist(), az_reported.tolist(), strict=True):
             x = self._get_x()
             d = models.rel_position(x, lay, b) - models.rel_position(x, lay, a)
             if np.hypot(d[0], d[1]) < 1.0:
                 self._count("bearing_degenerate_geometry")
                 continue
             m, h2_var = self._second_order(a, b, _bearing_hessian(d))
-            if not h2_var <= self.config.nonlinear_fraction * r_var:  # _linear_enough
+            if not h2_var <= self._nonlinear_fraction(a, b) * r_var:  # _linear_enough
                 self._count("bearing_deferred_nonlinear")
                 continue
             h2_bias = 0.5 * float(m.trace())
             if lay.has(AZIMUTH, a):
                 if not self._azimuth_ready[a]:
-                    alpha0 = float(bearing_rad(d, z))  # atan2(dE, dN) - beta, wrapped
+                    alpha0 = float(bearing_rad(d, zk))  # atan2(dE, dN) - beta, wrapped
                     s = slice(lay.azimuth(a), lay.azimuth(a) + 1)
                     self._set_block(s, np.array([alpha0]), np.array([[self.config.azimuth_sigma0_rad**2]]))
                     self._azimuth_ready[a] = True
                 row = models.bearing(self._get_x(), lay, a, b, None)
             else:
-                az = float(bearings.azimuth_reported_rad[k])
                 if not np.isfinite(az):
                     self._count(f"nonfinite_{KIND_BEARING}")
                     continue
                 row = models.bearing(x, lay, a, b, az)
             row = Row(row.h + h2_bias, row.idx, row.val)
-            info = self._scalar(KIND_BEARING, (a, b), row, z, r_var + h2_var, wrap=True)
+            info = self._scalar(KIND_BEARING, (a, b), row, zk, r_var + h2_var, wrap=True)
             if info is not None:
                 out.append(info)
         return out
@@ -827,7 +1065,19 @@ class ClusterFilterBase(ABC):
         right after a GNSS initialization (metre-level P) ranges and bearings over
         ~30 m are deferred until GNSS has shrunk P, which keeps the EKF consistent.
         """
-        return self._second_order(a, b, hess)[1] <= self.config.nonlinear_fraction * r_var
+        return self._second_order(a, b, hess)[1] <= self._nonlinear_fraction(a, b) * r_var
+
+    def _nonlinear_fraction(self, a: str, b: str) -> float:
+        """The deferral limit of a range or bearing between a and b (a fraction of R).
+
+        Deferring waits for GNSS to shrink P. When the last GNSS epoch of a or b had fewer
+        than 4 usable SD pseudoranges (:attr:`gnss_weak`: an urban canyon), GNSS will not
+        shrink it, and deferring would let the solution drift while the ranges that could
+        hold it are thrown away: then the measurement is used with its second-order mean
+        and variance (R inflated) whatever their size (inf)."""
+        if self.gnss_weak.get(a, False) or self.gnss_weak.get(b, False):
+            return math.inf
+        return self.config.nonlinear_fraction
 
     def _second_order(self, a: str, b: str, hess: F64) -> tuple[F64, float]:
         """``(H2 P_d, tr((H2 P_d)^2) / 2)``: the product (its half trace is the second-order
@@ -850,8 +1100,9 @@ class ClusterFilterBase(ABC):
             pd -= P[sa, sb] + P[sb, sa]
         return pd
 
-    def update_height_aiding(self, sigma_m: float) -> list[UpdateInfo]:
-        """Pseudo-measurement ``p_v,up = 0`` (variance sigma^2) for every initialized vehicle.
+    def update_height_aiding(self, sigma_m: float, vehicles: list[str] | None = None) -> list[UpdateInfo]:
+        """Pseudo-measurement ``p_v,up = 0`` (variance sigma^2) for every initialized vehicle
+        (or those in ``vehicles``).
 
         Tested like any measurement, so a real height difference (a ramp) is rejected
         rather than forced in.
@@ -859,7 +1110,7 @@ class ClusterFilterBase(ABC):
         lay = self.layout
         out = []
         for v in lay.vehicles:
-            if not self._vehicle_ready[v]:
+            if not self._vehicle_ready[v] or (vehicles is not None and v not in vehicles):
                 continue
             i = lay.position(v).start + 2
             row = Row(float(self._get_x()[i]), np.array([i]), np.array([1.0]))
@@ -949,7 +1200,10 @@ def _elevations(geo: GnssGeometry, sv_ecef_m: F64) -> F64:
 
 class ClusterEkf(ClusterFilterBase):
     """Production engine: sparse rows, O(n) P h^T, symmetric rank-1 covariance update,
-    block-wise prediction (each vehicle block shares one cached 8x8 F and Q).
+    block-wise prediction (each vehicle block shares one cached 8x8 F and Q), all in the
+    compiled kernels of :mod:`v2v.estimation.kernels`: every UWB, bearing and SD Doppler
+    batch (and SD pseudorange batch, through :meth:`_pseudorange_sequence`) runs in one
+    kernel call that re-linearizes each measurement at the current state.
 
     Example
     -------
@@ -963,6 +1217,11 @@ class ClusterEkf(ClusterFilterBase):
         self._veh0, self._nveh = self.layout.vehicle_blocks_contiguous()
         self._rw_index = random_walk_indices(self.layout)
         self._az_pairs = np.array(azimuth_pairs(self.layout), dtype=np.int64).reshape(-1, 2)
+        lay = self.layout
+        # kernel indices: position-slice start per vehicle (-1 = lead at the origin)
+        self._pos0 = {v: lay.position(v).start for v in lay.vehicles}
+        self._pos0[lay.lead] = -1
+        self._az_index = {v: lay.azimuth(v) for v in lay.azimuth_vehicles}
 
     def _get_x(self) -> F64:
         return self._x
@@ -972,20 +1231,8 @@ class ClusterEkf(ClusterFilterBase):
 
     def _predict_core(self, dt_s: float) -> None:
         fb, qb = vehicle_block(self.config.process, dt_s)
-        s0, m = self._veh0, self._nveh
-        n = self.layout.n
-        if m:
-            vs = slice(s0, s0 + 8 * m)
-            xv = self._x[vs].reshape(m, 8)
-            self._x[vs] = (xv @ fb.T).ravel()
-            rows = self._P[vs, :].reshape(m, 8, n)
-            self._P[vs, :] = np.einsum("ij,ajn->ain", fb, rows).reshape(8 * m, n)
-            cols = self._P[:, vs].reshape(n, m, 8)
-            self._P[:, vs] = (cols @ fb.T).reshape(n, 8 * m)
-            blk = self._P[vs, vs].reshape(m, 8, m, 8)
-            idx = np.arange(m)
-            blk[idx, :, idx, :] += qb
-            self._P[vs, vs] = blk.reshape(8 * m, 8 * m)
+        if self._nveh:  # F P F^T + Q over the contiguous vehicle blocks, compiled, in place
+            kernels.predict_vehicle_blocks(self._x, self._P, self._veh0, self._nveh, fb, qb)
         for s, kind in self._rw_index:
             q = random_walk_variances(self.config.process, kind, dt_s)
             self._P[s, s] += np.diag(q)
@@ -1005,7 +1252,7 @@ class ClusterEkf(ClusterFilterBase):
             self._P[ia, ir] += qa[0, 1]
             self._P[ir, ia] += qa[1, 0]
             self._P[ir, ir] += qa[1, 1]
-        self._P = 0.5 * (self._P + self._P.T)
+        kernels.symmetrize(self._P)
 
     def _apply(self, row: Row, z: float, r_var: float, wrap: bool, test: bool) -> tuple[float, float, bool]:
         nu = float(wrap_angle(z - row.h)) if wrap else float(z - row.h)
@@ -1017,3 +1264,110 @@ class ClusterEkf(ClusterFilterBase):
         self._P[s, :] = 0.0
         self._P[:, s] = 0.0
         self._P[s, s] = cov
+
+    # ----------------------------------------------------------------- compiled batches
+    def _nl_fractions(self, a_list: list[str], b_list: list[str]) -> F64:
+        """:meth:`_nonlinear_fraction` of every measurement of a batch."""
+        return np.fromiter((self._nonlinear_fraction(a, b) for a, b in zip(a_list, b_list, strict=True)),
+                           dtype=float, count=len(a_list))
+
+    def _uwb_sequence(self, a_list: list[str], b_list: list[str], z: F64) -> list[UpdateInfo]:
+        """All usable ranges in one :func:`v2v.estimation.kernels.uwb_batch` call."""
+        lay, cfg = self.layout, self.config
+        m = len(a_list)
+        sa = np.fromiter((self._pos0[a] for a in a_list), dtype=np.int64, count=m)
+        sb = np.fromiter((self._pos0[b] for b in b_list), dtype=np.int64, count=m)
+        ib = np.full(m, -1, dtype=np.int64)
+        isc = np.full(m, -1, dtype=np.int64)
+        pairs = [uwb_pair_key(a, b) for a, b in zip(a_list, b_list, strict=True)]
+        if cfg.use_uwb_bias_scale and lay.uwb_pairs:
+            for k, pair in enumerate(pairs):
+                if lay.has(UWB, pair):
+                    ib[k], isc[k] = lay.uwb_bias(pair), lay.uwb_scale(pair)
+        bb = cfg.uwb_bias_bounds_m or (0.0, 0.0)
+        sbnd = cfg.uwb_scale_bounds or (0.0, 0.0)
+        n_rec, kind, meas, nu, s, st = kernels.uwb_batch(
+            self._x, self._P, sa, sb, ib, isc, np.ascontiguousarray(z, dtype=float), cfg.noise.uwb_sigma_m**2,
+            self._k, self._nl_fractions(a_list, b_list), cfg.uwb_bias_bounds_m is not None, float(bb[0]), float(bb[1]),
+            cfg.uwb_scale_bounds is not None, float(sbnd[0]), float(sbnd[1]))
+        out = []
+        for kd, k, nuk, sk, stk in zip(kind[:n_rec].tolist(), meas[:n_rec].tolist(), nu[:n_rec].tolist(),
+                                       s[:n_rec].tolist(), st[:n_rec].tolist(), strict=True):
+            if kd == kernels.REC_UWB:
+                info = self._record(KIND_UWB, (a_list[k], b_list[k]), nuk, sk, stk, -1, "uwb_deferred_nonlinear")
+            else:
+                info = self._record(KIND_CONSTRAINT, pairs[k], nuk, sk, stk, -1, "")
+            if info is not None:
+                out.append(info)
+        return out
+
+    def _bearing_sequence(self, a_list: list[str], b_list: list[str], z: F64, az_reported: F64) -> list[UpdateInfo]:
+        """All usable bearings in one :func:`v2v.estimation.kernels.bearing_batch` call."""
+        cfg = self.config
+        m = len(a_list)
+        sa = np.fromiter((self._pos0[a] for a in a_list), dtype=np.int64, count=m)
+        sb = np.fromiter((self._pos0[b] for b in b_list), dtype=np.int64, count=m)
+        iaz = np.fromiter((self._az_index.get(a, -1) for a in a_list), dtype=np.int64, count=m)
+        ready = np.zeros(self.layout.n, dtype=np.bool_)
+        for v, i in self._az_index.items():
+            ready[i] = self._azimuth_ready[v]
+        nu, s, st = kernels.bearing_batch(self._x, self._P, sa, sb, iaz, ready, np.ascontiguousarray(z, dtype=float),
+                                          np.ascontiguousarray(az_reported, dtype=float),
+                                          cfg.noise.bearing_sigma_rad**2, self._k, self._nl_fractions(a_list, b_list),
+                                          cfg.azimuth_sigma0_rad**2)
+        for v, i in self._az_index.items():
+            self._azimuth_ready[v] = bool(ready[i])
+        out = []
+        for k, (nuk, sk, stk) in enumerate(zip(nu.tolist(), s.tolist(), st.tolist(), strict=True)):
+            info = self._record(KIND_BEARING, (a_list[k], b_list[k]), nuk, sk, stk, -1, "bearing_deferred_nonlinear")
+            if info is not None:
+                out.append(info)
+        return out
+
+    def _doppler_sequence(self, v: str, rows: models.SdDopplerRows, z: F64, order: NDArray[np.int64],
+                          excluded: NDArray[np.bool_], prns: NDArray, r_var: float) -> list[UpdateInfo]:
+        """One vehicle's SD Dopplers in one :func:`v2v.estimation.kernels.sd_doppler_batch` call."""
+        order = np.ascontiguousarray(order, dtype=np.int64)
+        nu, s, st = kernels.sd_doppler_batch(self._x, self._P, *rows.kernel_args(), np.ascontiguousarray(z, dtype=float),
+                                             order, np.ascontiguousarray(excluded, dtype=np.bool_), r_var, self._k)
+        prn_l = prns.tolist()
+        out = []
+        for o, nuk, sk, stk in zip(order.tolist(), nu.tolist(), s.tolist(), st.tolist(), strict=True):
+            info = self._record(KIND_SD_DOPPLER, (v,), nuk, sk, stk, prn_l[o], "")
+            if info is not None:
+                out.append(info)
+        return out
+
+    def _pseudorange_sequence(self, v: str, rows: models.SdPseudorangeRows, z: F64, order: NDArray[np.int64],
+                              excluded: NDArray[np.bool_], prns: NDArray, r_var: float) -> list[UpdateInfo]:
+        """One vehicle's SD pseudoranges in one :func:`v2v.estimation.kernels.sd_pseudorange_batch` call."""
+        order = np.ascontiguousarray(order, dtype=np.int64)
+        nu, s, st = kernels.sd_pseudorange_batch(self._x, self._P, *rows.kernel_args(),
+                                                 np.ascontiguousarray(z, dtype=float), order,
+                                                 np.ascontiguousarray(excluded, dtype=np.bool_), r_var, self._k)
+        prn_l = prns.tolist()
+        out = []
+        for o, nuk, sk, stk in zip(order.tolist(), nu.tolist(), s.tolist(), st.tolist(), strict=True):
+            info = self._record(KIND_SD_PR, (v,), nuk, sk, stk, prn_l[o], "")
+            if info is not None:
+                out.append(info)
+        return out
+
+    def _record(self, kind: str, vehicles: tuple[str, ...], nu: float, s: float, status: int, prn: int,
+                deferred_key: str) -> UpdateInfo | None:
+        """The UpdateInfo / counters of one kernel record, as :meth:`_scalar` and the Python
+        sequences produce them."""
+        if status == kernels.ACCEPTED:
+            return UpdateInfo(kind, vehicles, nu, s, nu * nu / s, True, prn)
+        if status == kernels.REJECTED or status == kernels.EXCLUDED:
+            self._count(f"rejected_{kind}")
+            if status == kernels.EXCLUDED:
+                self._count("excluded_screened")
+            return UpdateInfo(kind, vehicles, nu, s, nu * nu / s, False, prn)
+        if status == kernels.DEFERRED:
+            self._count(deferred_key)
+        elif status == kernels.DEGENERATE:
+            self._count("bearing_degenerate_geometry")
+        else:  # NONFINITE, NONFINITE_INPUT
+            self._count(f"nonfinite_{kind}")
+        return None

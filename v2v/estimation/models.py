@@ -246,6 +246,13 @@ class SdPseudorangeRows:
     def __len__(self) -> int:
         return len(self._sv)
 
+    def kernel_args(self) -> tuple:
+        """Arguments of :func:`v2v.estimation.kernels.sd_pseudorange_batch` after ``(x, P)``:
+        base position (ECEF), R, position slice start, clock index, satellite positions
+        (m, 3) and the lead's ranges (m,)."""
+        return (self._geo.base_ecef_m, self._rot, self._ps.start, self._clk, self._sv,
+                np.ascontiguousarray(self._rho_lead, dtype=float))
+
     def all(self, x: F64) -> tuple[F64, F64]:
         """(h (m,), val (m, 4)) of every row at state ``x``."""
         r_v = self._geo.abs_position(x[self._ps])
@@ -313,6 +320,13 @@ class SdDopplerRows:
     def all(self, x: F64) -> tuple[F64, F64]:
         """(h (m,), val (m, 7)) of every row at state ``x``."""
         return self._rows(x, slice(None))
+
+    def kernel_args(self) -> tuple:
+        """Arguments of :func:`v2v.estimation.kernels.sd_doppler_batch` after ``(x, P)``:
+        base position/velocity (ECEF), R (ECEF->ENU), position/velocity slice starts, drift
+        index, satellite positions/velocities (m, 3) and the lead's range rates (m,)."""
+        return (self._geo.base_ecef_m, self._geo.base_vel_ecef_mps, self._rot, self._ps.start, self._vs.start,
+                self._drift, self._sv, self._svv, np.ascontiguousarray(self._rate_lead, dtype=float))
 
     def row(self, x: F64, o: int) -> Row:
         """Row of satellite ``o`` at state ``x``: :func:`sd_doppler`'s arithmetic
