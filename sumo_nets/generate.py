@@ -518,6 +518,13 @@ def urban_canyon() -> Net:
                 li, lj = bi - int(right[0]), bj - int(right[1])
                 rt, lt = f"{b}-n{ri}_{rj}", f"{b}-n{li}_{lj}"
                 net.connections += [(f"{a}-{b}", rt, 0, 0), (f"{a}-{b}", rt, 1, 0), (f"{a}-{b}", lt, 2, 0)]
+    # Open-sky approach from the west onto 5 Avenue (the j = 4 main avenue): 1.2 km with no
+    # buildings, for an "initialization drive" before the canyon (MacGougan (2009) ch. 4's
+    # kinematic test initializes in the open, then drives downtown).
+    # One-way (inbound), so that no lane ends at its far end (the nets are closed circuits).
+    net.node("w_far", coords[0] - 1200.0, coords[4], type="priority")
+    net.edge("w_far-n0_4", "w_far", "n0_4", lanes=2, speed=16.67, priority=3, name="Bow Trail SW", spread="center")
+    approach = LineString([net.nodes["w_far"][:2], net.nodes["n0_4"][:2]])
     half = [(3 if k in main else 1) * LANE_WIDTH_M for k in range(n)]  # two-way: half-width = lanes*w
     setback = 4.0
     depth = 28.0
@@ -529,7 +536,9 @@ def urban_canyon() -> Net:
 
     def add_lot(x0, y0, x1, y1):
         b = Polygon([(x0 + 0.5, y0 + 0.5), (x1 - 0.5, y0 + 0.5), (x1 - 0.5, y1 - 0.5), (x0 + 0.5, y1 - 0.5)])
-        net.add_poly("building", b, height(b.centroid.x, b.centroid.y))
+        h = height(b.centroid.x, b.centroid.y)  # drawn first: the other lots keep their heights
+        if b.distance(approach) >= 2 * LANE_WIDTH_M + 1.0:  # the approach road cuts through the west ring
+            net.add_poly("building", b, h)
 
     for i in range(n - 1):
         for j in range(n - 1):
@@ -570,6 +579,9 @@ def urban_canyon() -> Net:
     core += [f"n{i}_2-n{i - 1}_2" for i in range(5, 0, -1)] + ["n0_2-n0_3"]
     net.routes["core"] = core * 2
     net.route_notes["core"] = "side streets through the tallest blocks, clockwise twice (~2.6 km)"
+    net.routes["init_drive"] = ["w_far-n0_4", "n0_4-n1_4"] + lap
+    net.route_notes["init_drive"] = (
+        "1.2 km of open sky from the west, then into the canyon: the main-street rectangle once (~2.6 km)")
     return net
 
 

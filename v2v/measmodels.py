@@ -31,6 +31,22 @@ def range_jacobian(p_a: ArrayLike, p_b: ArrayLike) -> F64:
     return d / np.sqrt(np.sum(d * d, axis=-1, keepdims=True))
 
 
+def range_difference_m(p_ref: ArrayLike, d_m: ArrayLike, sv_a: ArrayLike, sv_ref: ArrayLike) -> F64:
+    """``|sv_a - (p_ref + d)| - |sv_ref - p_ref|`` without cancellation (single differences).
+
+    Subtracting two ~2.2e7 m ranges keeps only ~4e-9 m of precision (their ulp), which is
+    1e-6 of a carrier-phase sigma and makes two algebraically equal filters drift apart by
+    round-off. With ``e = sv_ref - p_ref`` and ``w = (sv_a - sv_ref) - d`` (both differences
+    of nearby vectors, exact or nearly so):
+    ``|e + w| - |e| = (2 e.w + w.w) / (|e + w| + |e|)``, accurate to ~1e-16 of the result.
+    ``d`` is the small offset of receiver a from the reference receiver (e.g. ``R^T p``).
+    """
+    e = np.asarray(sv_ref, dtype=float) - np.asarray(p_ref, dtype=float)
+    w = (np.asarray(sv_a, dtype=float) - np.asarray(sv_ref, dtype=float)) - np.asarray(d_m, dtype=float)
+    num = 2.0 * np.sum(e * w, axis=-1) + np.sum(w * w, axis=-1)
+    return num / (np.sqrt(np.sum((e + w) ** 2, axis=-1)) + np.sqrt(np.sum(e * e, axis=-1)))
+
+
 def bearing_rad(delta_enu_ab: ArrayLike, azimuth_a_rad: ArrayLike) -> F64:
     """Bearing from vehicle a to b relative to a's forward axis (Petovello et al. eq. 5).
 

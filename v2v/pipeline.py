@@ -32,6 +32,7 @@ from v2v.estimation.filter import (
     UpdateInfo,
 )
 from v2v.estimation.layout import StateLayout
+from v2v.estimation.phase import PhaseConfig, wrong_fix
 from v2v.estimation.process import ProcessNoiseConfig
 from v2v.exchange import Message, V2VExchange
 from v2v.frames import ecef_to_enu, ecef_to_enu_rotation
@@ -155,6 +156,13 @@ def build_filter(sol: SolutionSection, lead: str, vehicles: Sequence[str], beari
         significance=sol.significance,
         use_uwb_bias_scale=sol.uwb_error_states,
         height_aiding_sigma_m=sol.height_aiding_sigma_m,
+        phase=PhaseConfig(
+            phase_sigma_m=sol.phase_sigma_m,
+            elevation_mask_rad=float(np.radians(sol.phase_elevation_mask_deg)),
+            resolve=sol.ambiguity_resolution,
+            ar_min_success=sol.ar_min_success,
+            ar_ratio=sol.ar_ratio,
+        ) if sol.carrier_phase else None,
     )
     return ClusterEkf(layout, cfg)
 
@@ -292,7 +300,9 @@ def run_solution(sol: SolutionSection, ekf: ClusterEkf, events: Sequence[Event],
     t_filter: float | None = None
     ei = 0
     pending: list[UpdateInfo] = []
+    last_gnss: tuple[float, dict[str, GnssEpoch]] | None = None  # for the phase truth (wrong fixes)
     n_events = len(events)
+    t_prev_out: float | None = None
     members = set(vehicles)
     last_heard: dict[str, float] = {}
     for t_out in output_times:
@@ -340,6 +350,7 @@ def run_solution(sol: SolutionSection, ekf: ClusterEkf, events: Sequence[Event],
                 if ev.lead_base_ecef_m is None:
                     continue
                 infos = ekf.update_gnss(ev.gnss or {}, ev.lead_base_ecef_m)
+                last_gnss = (ev.t_s, ev.gnss or {})
             elif ev.kind == "uwb":
                 infos += ekf.update_uwb(ev.uwb)  # type: ignore[arg-type]
             else:
@@ -363,6 +374,11 @@ def run_solution(sol: SolutionSection, ekf: ClusterEkf, events: Sequence[Event],
             pending = []
             continue
         rows = _epoch_rows(sol.name, t_out, ekf, step, lead, vehicles, pending)
+        if ekf.config.phase is not None:
+            # the status belongs to a GNSS epoch delivered in this output interval (t_prev_out, t_out]
+            fresh = last_gnss is not None and (t_prev_out is None or last_gnss[0] > t_prev_out + 1e-9)
+            _phase_columns(rows, ekf, last_gnss[1] if fresh and last_gnss is not None else None, lead)
+        t_prev_out = t_out
         for r in rows:
             rec.add_row(r)
         if on_epoch is not None:
@@ -416,7 +432,7 @@ def _epoch_rows(name: str, t_s: float, ekf: ClusterEkf, step: TrafficStep, lead:
             "nees_pos": nees,
             "true_lane_index": st.lane_index, "lead_lane_index": lead_st.lane_index, "lane_width_m": st.lane_width_m,
         }
-        for kind in ("pr", "doppler", "uwb", "bearing"):
+        for kind in ("pr", "doppler", "uwb", "bearing") + (("phase",) if ekf.config.phase is not None else ()):
             row[f"used_{kind}"] = c.get(f"used_{kind}", 0)
             row[f"rejected_{kind}"] = c.get(f"rejected_{kind}", 0)
         row["integrity_available"] = bool(getattr(ekf, "integrity_available", {}).get(v, False))
@@ -429,6 +445,25 @@ def _epoch_rows(name: str, t_s: float, ekf: ClusterEkf, step: TrafficStep, lead:
     return rows
 
 
+def _phase_columns(rows: list[dict[str, Any]], ekf: ClusterEkf, gnss: dict[str, GnssEpoch] | None,
+                   lead: str) -> None:
+    """Ambiguity-resolution columns of a carrier-phase solution: ``phase_state`` (fixed /
+    partial / float; "" without a GNSS epoch in this output interval), ``n_dd``, ``n_fixed``,
+    ``ar_ratio``, ``ar_success_rate`` and ``wrong_fix`` (a fixed combination differs from the
+    true integers: the simulator knows them; NaN when nothing is fixed)."""
+    for r in rows:
+        if "est_e_m" not in r:
+            continue
+        st = ekf.phase_status.get(r["vehicle"]) if gnss is not None else None
+        if st is None:
+            r.update(phase_state="", n_dd=0, n_eligible=0, n_fixed=0, ar_ratio=float("nan"), ar_success_rate=float("nan"),
+                     wrong_fix=float("nan"))
+            continue
+        wf = wrong_fix(st, gnss.get(r["vehicle"]), gnss.get(lead)) if gnss is not None else None
+        r.update(phase_state=st.state, n_dd=st.n_dd, n_eligible=st.n_eligible, n_fixed=st.n_fixed, ar_ratio=st.ratio,
+                 ar_success_rate=st.success_rate, wrong_fix=float("nan") if wf is None else float(wf))
+
+
 def _wrap(a: float) -> float:
     from v2v.frames import wrap_angle
 
@@ -436,7 +471,8 @@ def _wrap(a: float) -> float:
 
 
 def _short(kind: str) -> str:
-    return {"sd_pseudorange": "pr", "sd_pseudorange_pair": "pr", "sd_doppler": "doppler"}.get(kind, kind)
+    return {"sd_pseudorange": "pr", "sd_pseudorange_pair": "pr", "sd_doppler": "doppler", "sd_phase": "phase"}.get(
+        kind, kind)
 
 
 def enu_rotation(lat_rad: float, lon_rad: float) -> np.ndarray:

@@ -33,7 +33,8 @@ class GnssSection(_Model):
     enabled: bool = True
     rate_hz: float = Field(default=10.0, gt=0.0, le=100.0)
     elevation_mask_deg: float = Field(default=10.0, ge=0.0, lt=90.0)
-    # "nominal" = the built-in 24-slot constellation at start_utc, or a RINEX 2/3 nav file path.
+    # "nominal" = the built-in SPS PS 27-slot (expandable 24) constellation at start_utc
+    # (v2v.sensors.gnss.constellation), or a RINEX 2/3 nav file path for a real sky.
     ephemeris: str = "nominal"
     oscillator: Literal["TCXO", "OCXO"] = "TCXO"
     errors: GnssErrorsSection = GnssErrorsSection()
@@ -108,6 +109,16 @@ class SolutionSection(_Model):
     azimuth_rw_deg_per_sqrt_s: float = Field(default=2.0, ge=0.0)
     yaw_rate_sigma_deg_s: float = Field(default=30.0, ge=0.0)
     yaw_rate_tau_s: float = Field(default=1.0, gt=0.0)
+    # Carrier phase (MacGougan (2009) sections 3.4-3.7; v2v.estimation.phase): SD phase with SD
+    # ambiguity states, LAMBDA partial fixing validated by the bootstrapped success rate and the
+    # ratio test, fix-and-hold. The phase solutions use a realistic code sigma (open-sky code
+    # error ~0.5 m), not the paper's 5 m: with 5 m the float ambiguities need many minutes.
+    carrier_phase: bool = False
+    phase_sigma_m: float = Field(default=0.005, gt=0.0)
+    phase_elevation_mask_deg: float = Field(default=15.0, ge=0.0, lt=90.0)
+    ambiguity_resolution: bool = True
+    ar_min_success: float = Field(default=0.999, gt=0.0, lt=1.0)
+    ar_ratio: float = Field(default=3.0, ge=1.0)
 
     @field_validator("sensors")
     @classmethod
@@ -138,4 +149,17 @@ def paper_solutions() -> list[SolutionSection]:
         SolutionSection(name="GPS+UWB+Bearing", sensors=["gnss", "uwb", "bearing"]),
         SolutionSection(name="GPS+Bearing az-est", sensors=["gnss", "bearing"], azimuth="estimated"),
         SolutionSection(name="GPS+UWB+Bearing az-est", sensors=["gnss", "uwb", "bearing"], azimuth="estimated"),
+    ]
+
+
+def phase_solutions() -> list[SolutionSection]:
+    """The carrier-phase solutions (issue 9; MacGougan (2009) ch. 4: GPS vs tightly-coupled
+    GPS+UWB RTK). Code sigma 1 m; UWB with bias and scale states (thesis ch. 4: observable
+    with a range of motion, needed below 10 cm, paper section 5.4)."""
+    common = {"carrier_phase": True, "pseudorange_sigma_m": 1.0}
+    return [
+        SolutionSection(name="GPS-phase", sensors=["gnss"], **common),
+        SolutionSection(name="GPS-phase+UWB", sensors=["gnss", "uwb"], uwb_error_states=True, **common),
+        SolutionSection(name="GPS-phase+UWB+Bearing", sensors=["gnss", "uwb", "bearing"], uwb_error_states=True,
+                        **common),
     ]

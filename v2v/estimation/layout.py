@@ -17,13 +17,16 @@ az_rate    vehicle id            1     azimuth rate (yaw rate, rad/s) of a vehic
                                        :mod:`v2v.estimation.process` for its model)
 uwb        (id_a, id_b) sorted   2     UWB bias (m) and scale factor (unitless) of one
                                        radio pair (MacGougan (2009) eq. 3.4-3.5, 3.9)
+sd_amb     (vehicle id, prn)     1     single-difference carrier-phase ambiguity
+                                       ``N_v - N_lead`` (L1 cycles) of one satellite
+                                       (MacGougan (2009) section 3.6; added when the
+                                       satellite is tracked by both, removed at a slip
+                                       or when it is lost)
 ========== ===================== ===== =================================================
 
 Code elsewhere never does index arithmetic on the state: it asks the layout for
-``position(v)``, ``clock(v)``, ``uwb_scale(pair)`` ... A later block kind (e.g.
-single-difference carrier ambiguities, key ``(vehicle, prn)``, size 1) is added by
-extending :data:`BLOCK_SIZES` and giving it named accessors; the offsets, the
-add/remove re-mapping and the process model are generic over block kinds.
+``position(v)``, ``clock(v)``, ``uwb_scale(pair)``, ``ambiguity(v, prn)`` ... The offsets,
+the add/remove re-mapping and the process model are generic over block kinds.
 
 The lead vehicle has no vehicle block (it is the origin); it may have an azimuth block.
 """
@@ -44,9 +47,10 @@ VEHICLE = "vehicle"
 AZIMUTH = "azimuth"
 AZIMUTH_RATE = "az_rate"
 UWB = "uwb"
+AMBIGUITY = "sd_amb"
 
 #: Size of each block kind.
-BLOCK_SIZES: dict[str, int] = {VEHICLE: 8, AZIMUTH: 1, AZIMUTH_RATE: 1, UWB: 2}
+BLOCK_SIZES: dict[str, int] = {VEHICLE: 8, AZIMUTH: 1, AZIMUTH_RATE: 1, UWB: 2, AMBIGUITY: 1}
 
 # Offsets inside a vehicle block.
 _POS = slice(0, 3)
@@ -147,6 +151,33 @@ class StateLayout:
     def uwb_pairs(self) -> tuple[tuple[str, str], ...]:
         return tuple(k for kind, k in self.blocks if kind == UWB)
 
+    def ambiguity_keys(self, v: str | None = None) -> tuple[tuple[str, int], ...]:
+        """``(vehicle, prn)`` keys of the SD ambiguity blocks (of ``v`` only when given), state order."""
+        return tuple(k for kind, k in self.blocks if kind == AMBIGUITY and (v is None or k[0] == v))
+
+    def ambiguity(self, v: str, prn: int) -> int:
+        """SD carrier-phase ambiguity ``N_v - N_lead`` (cycles) of satellite ``prn``."""
+        return self.block(AMBIGUITY, (v, int(prn))).start
+
+    def without_blocks(self, ids: list[BlockId] | tuple[BlockId, ...]) -> tuple[StateLayout, Remap]:
+        """Remove the listed blocks (marginalization: the other rows/columns of x, P are kept)."""
+        drop = set(ids)
+        new = StateLayout(lead=self.lead, blocks=tuple(b for b in self.blocks if b not in drop))
+        return new, _make_remap(self, new, {})
+
+    def with_blocks(self, kind: str, keys: list[Hashable], *, mean: F64, variance: F64) -> tuple[StateLayout, Remap]:
+        """Append several blocks of one single-state kind (e.g. ambiguities) in one remap;
+        ``mean``/``variance`` (k,) per block, uncorrelated with the rest."""
+        if BLOCK_SIZES[kind] != 1:
+            raise ValueError("with_blocks is for single-state block kinds")
+        for key in keys:
+            if self.has(kind, key):
+                raise UserError(f"state block {kind}:{key!r} already exists", field="layout")
+        new = StateLayout(lead=self.lead, blocks=self.blocks + tuple((kind, k) for k in keys))
+        m = np.asarray(mean, dtype=float).reshape(-1)
+        var = np.asarray(variance, dtype=float).reshape(-1)
+        return new, _make_remap(self, new, {(kind, k): (m[i:i + 1], var[i:i + 1]) for i, k in enumerate(keys)})
+
     def has(self, kind: str, key: Hashable) -> bool:
         return (kind, key) in self._offsets
 
@@ -237,7 +268,8 @@ class StateLayout:
         return self.with_block(VEHICLE, v, mean=mean, variance=variance)
 
     def without_vehicle(self, v: str) -> tuple[StateLayout, Remap]:
-        """Remove vehicle ``v``: its block, its azimuth (and rate) block and every UWB pair it is in.
+        """Remove vehicle ``v``: its block, its azimuth (and rate) block, every UWB pair it is in
+        and its SD ambiguities.
 
         Removing a block marginalizes it: the remaining rows/columns of x and P are kept.
         """
@@ -245,6 +277,7 @@ class StateLayout:
             (kind, key)
             for kind, key in self.blocks
             if not (key == v and kind in (VEHICLE, AZIMUTH, AZIMUTH_RATE)) and not (kind == UWB and v in key)
+            and not (kind == AMBIGUITY and key[0] == v)
         )
         new = StateLayout(lead=self.lead, blocks=keep)
         return new, _make_remap(self, new, {})

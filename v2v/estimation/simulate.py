@@ -83,6 +83,16 @@ class SimScenario:
     uwb_bias_m: float = 0.0  # kinematic mode: bias of every pair in uwb_state_pairs
     uwb_scale: float = 0.0
     azimuth_rates: bool = False  # process mode: azimuths integrate a GM yaw rate (process.azimuth_block)
+    # Carrier phase (generated when the filter config has ``phase``): every receiver gets a random
+    # integer ambiguity per satellite; (t_s, vehicle, prn or 0 = all, cycles) slips add cycles from
+    # t_s on and restart the lock time. Noise like the pseudoranges: the lead noise-free, followers
+    # sigma_phi * sqrt 2 (independent SDs with variance 2 sigma_phi^2, as the filter assumes).
+    phase_slips: tuple[tuple[float, str, int, int], ...] = ()
+    silent_slips: bool = False  # slips keep the lock time running (no loss-of-lock indicator)
+    # kinematic mode: the SD clock drifts at a constant rate (a real oscillator) instead of the
+    # filter's deliberately loose Gauss-Markov drift (sigma 1000 m/s), whose 0.1 s increments of
+    # ~140 m/s no carrier-minus-Doppler slip test could tell from a slip.
+    steady_clock: bool = False
 
 
 @dataclass(frozen=True, kw_only=True)
@@ -181,6 +191,13 @@ def simulate(scn: SimScenario, cfg: FilterConfig, rng: np.random.Generator) -> l
     lead_enu = np.zeros(3)
     heading = scn.heading_rad
     epochs: list[SimEpoch] = []
+    phase_cfg = cfg.phase
+    if phase_cfg is not None:
+        from v2v.sensors.measurements import GPS_L1_WAVELENGTH_M
+
+        amb = {v: rng.integers(-10_000, 10_000, size=len(prns), endpoint=True) for v in ids}
+        lock_start = {v: np.zeros(len(prns)) for v in ids}
+        slips_done: set[tuple[int, str]] = set()
     for k in range(n_ep):
         t = k * scn.dt_s
         if k > 0:
@@ -195,6 +212,9 @@ def simulate(scn: SimScenario, cfg: FilterConfig, rng: np.random.Generator) -> l
             for i, v in enumerate(followers, start=1):
                 s_prev = rel[v]
                 s_new = fb @ s_prev + _draw(rng, qb)
+                if scn.steady_clock:
+                    s_new[7] = s_prev[7]
+                    s_new[6] = s_prev[6] + s_prev[7] * scn.dt_s
                 if scn.truth == "kinematic":
                     s_new[0:3] = formation(i, heading)
                     s_new[3:6] = (formation(i, heading + 1e-6) - formation(i, heading - 1e-6)) / 2e-6 \
@@ -246,12 +266,28 @@ def simulate(scn: SimScenario, cfg: FilterConfig, rng: np.random.Generator) -> l
                 enu = (sv - pos[v]) @ rot.T
                 s_az, s_el = azimuth_elevation(enu)
                 n = int(keep.sum())
+                carrier = np.full(len(sv), np.nan)
+                lock = np.zeros(len(sv))
+                n_true = np.zeros(len(sv), dtype=np.int64)
+                if phase_cfg is not None:
+                    for si, (t_slip, v_slip, prn_slip, cycles) in enumerate(scn.phase_slips):
+                        if v_slip == v and t >= t_slip - 1e-9 and (si, v) not in slips_done:
+                            hit = np.ones(len(sv), dtype=bool) if prn_slip == 0 else prns == prn_slip
+                            amb[v] = amb[v] + cycles * hit
+                            if not scn.silent_slips:
+                                lock_start[v][hit] = t
+                            slips_done.add((si, v))
+                    s_ph = 0.0 if v == "lead" else phase_cfg.phase_sigma_m * np.sqrt(2.0)
+                    ph_m = rho + clk[v] + s_ph * rng.standard_normal(len(sv))
+                    carrier = ph_m / GPS_L1_WAVELENGTH_M + amb[v]
+                    lock = t - lock_start[v]
+                    n_true = amb[v].astype(np.int64)
                 gnss[v] = GnssEpoch(
                     t_s=t, vehicle_id=v, prn=prns[keep], pseudorange_m=pr[keep], doppler_mps=dop[keep],
-                    carrier_cycles=np.full(n, np.nan), lock_time_s=np.zeros(n), cn0_dbhz=np.full(n, 45.0),
+                    carrier_cycles=carrier[keep], lock_time_s=lock[keep], cn0_dbhz=np.full(n, 45.0),
                     sv_pos_ecef_m=sv[keep], sv_vel_ecef_mps=sat_vel[keep], sv_clock_m=np.zeros(n),
                     elevation_rad=s_el[keep], azimuth_rad=s_az[keep], los=np.ones(n, dtype=bool),
-                    true_range_m=rho[keep], ambiguity_cycles=np.zeros(n, dtype=np.int64),
+                    true_range_m=rho[keep], ambiguity_cycles=n_true[keep],
                     errors_m={"noise": (pr - rho - clk[v])[keep]},
                 )
 

@@ -33,6 +33,8 @@ def solution_statistics(epochs: pd.DataFrame, updates: dict[str, pd.DataFrame]) 
             if "azimuth_err_rad" in g:
                 az = ok["azimuth_err_rad"].dropna().to_numpy()
                 entry["azimuth_err_deg"] = error_statistics(np.degrees(az))
+            if "phase_state" in g and g["phase_state"].notna().any():  # a carrier-phase solution
+                entry["ambiguity"] = ambiguity_statistics(ok)
             per_vehicle[str(veh)] = entry
         sol_entry: dict[str, Any] = {"vehicles": per_vehicle}
         if "lead_azimuth_err_rad" in g_sol:
@@ -43,6 +45,35 @@ def solution_statistics(epochs: pd.DataFrame, updates: dict[str, pd.DataFrame]) 
             sol_entry["measurements"] = _update_stats(u)
         out[str(sol)] = sol_entry
     return out
+
+
+def ambiguity_statistics(ok: pd.DataFrame) -> dict[str, Any]:
+    """Carrier-phase metrics of one vehicle over its initialized epochs with a GNSS epoch.
+
+    ``fix_rate``: fraction of those epochs with every DD ambiguity fixed (validated by the
+    bootstrapped success rate and the ratio test); ``partial_rate``: some but not all;
+    ``time_to_first_fix_s``: from the first initialized epoch to the first fixed one (NaN:
+    never); ``wrong_fix_rate``: among epochs with any fixed combination, the fraction where
+    one differs from the true integers; ``fixed_along`` / ``fixed_across``: error statistics
+    over the fixed epochs.
+    """
+    g = ok[ok["phase_state"] != ""]
+    n = len(g)
+    fixed = g["phase_state"] == "fixed"
+    wf = g["wrong_fix"].dropna()
+    t_first = float(ok["t_s"].min()) if len(ok) else float("nan")
+    t_fix = float(g.loc[fixed, "t_s"].min()) if fixed.any() else float("nan")
+    return {
+        "epochs": int(n),
+        "fix_rate": float(fixed.mean()) if n else float("nan"),
+        "partial_rate": float((g["phase_state"] == "partial").mean()) if n else float("nan"),
+        "time_to_first_fix_s": t_fix - t_first,
+        "epochs_with_fix": int(len(wf)),
+        "wrong_fix_epochs": int((wf > 0.5).sum()),
+        "wrong_fix_rate": float((wf > 0.5).mean()) if len(wf) else float("nan"),
+        "fixed_along": error_statistics(g.loc[fixed, "along_err_m"].to_numpy()),
+        "fixed_across": error_statistics(g.loc[fixed, "across_err_m"].to_numpy()),
+    }
 
 
 def _update_stats(u: pd.DataFrame) -> dict[str, Any]:

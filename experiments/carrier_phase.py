@@ -1,0 +1,293 @@
+"""Carrier-phase relative positioning: fixing, slips, and UWB aiding in a degraded sky.
+
+Three parts, each run with every seed given (one run folder per part and seed under
+``--out/runs``):
+
+1. **Initialization drive** (``scenarios/phase_init_drive.toml``): 1.2 km of open sky, then
+   the downtown canyon of ``urban_canyon``, as in MacGougan (2009) chapters 4-5 (an
+   initialization walk in the open, then the survey among buildings). Code-only GPS against
+   GPS-phase, GPS-phase+UWB and GPS-phase+UWB+Bearing, scored per segment (open / canyon, by
+   the edge each car is on): fix rate, partial-fix rate, wrong-fix rate (the simulator knows
+   the integers), time to first fix, along/across errors.
+2. **Degraded sky** (MacGougan (2009) chapter 4: "a degraded GPS signal environment created
+   artificially by excluding GPS satellites ... using elevation masking": a 40 deg mask left
+   4 satellites): ``open_highway``, 60 s of initialization with the whole sky, then all but
+   the ``--keep`` highest satellites are removed (a ``satellites_lost`` fault; the equivalent
+   mask angle is reported), and later both followers' carriers slip on every satellite
+   (their ambiguities must be found again with the few satellites left). GPS-phase against GPS-phase+UWB: fix rate and
+   errors in the degraded window, time to re-fix after the slip.
+3. **Slips in the open** (part 2's first 60 s): one satellite of one follower and every
+   satellite of the other slip (``cycle_slip`` faults); detection counts, re-fix times,
+   wrong fixes.
+
+Outputs in ``--out``: ``carrier_phase.md`` (all tables), one CSV per table,
+``carrier_phase_timeline.png`` (fix state and errors of part 1, first seed).
+
+Run::
+
+    .venv/bin/python experiments/carrier_phase.py --out /tmp/phase --seeds 1 2 3
+"""
+
+from __future__ import annotations
+
+import argparse
+import json
+import sys
+from pathlib import Path
+
+import numpy as np
+import pandas as pd
+
+HERE = Path(__file__).resolve().parent
+SCENARIO = HERE.parent / "scenarios" / "phase_init_drive.toml"
+OPEN_EDGE_PREFIX = "w_far"  # the open-sky approach of urban_canyon's init_drive route
+
+
+def _phase_solutions(uwb_sigma_m: float, bearing: bool = True) -> str:
+    common = 'carrier_phase=true, pseudorange_sigma_m=1.0'
+    items = [
+        '{name="GPS", sensors=["gnss"]}',
+        '{name="GPS-phase", sensors=["gnss"], ' + common + '}',
+        '{name="GPS-phase+UWB", sensors=["gnss", "uwb"], uwb_error_states=true, '
+        f'uwb_sigma_m={uwb_sigma_m}, ' + common + '}',
+    ]
+    if bearing:
+        items.append('{name="GPS-phase+UWB+Bearing", sensors=["gnss", "uwb", "bearing"], uwb_error_states=true, '
+                     f'uwb_sigma_m={uwb_sigma_m}, ' + common + '}')
+    return "solutions=[" + ", ".join(items) + "]"
+
+
+def _run(overrides: list[str], folder: Path, scenario: Path | None = None, save: bool = False) -> Path:
+    from v2v.config.scenario import load_scenario
+    from v2v.run import run_scenario
+
+    run_scenario(load_scenario(scenario, overrides), folder, quiet=True, replay=False, save_measurements=save)
+    return folder
+
+
+def _segment(folder: Path) -> pd.DataFrame:
+    """epochs.parquet of a run with a ``segment`` column (open / canyon: the car's own edge)."""
+    e = pd.read_parquet(folder / "epochs.parquet")
+    tr = pd.read_parquet(folder / "truth.parquet", columns=["t_s", "vehicle", "edge"])
+    tr["t_key"] = np.round(tr["t_s"], 3)
+    e["t_key"] = np.round(e["t_s"], 3)
+    e = e.merge(tr[["t_key", "vehicle", "edge"]], on=["t_key", "vehicle"], how="left")
+    e["segment"] = np.where(e["edge"].astype(str).str.startswith(OPEN_EDGE_PREFIX), "open", "canyon")
+    return e
+
+
+def _scores(g: pd.DataFrame) -> dict[str, float]:
+    ok = g[g["initialized"].astype(bool)]
+    out = {
+        "epochs": len(g),
+        "along_rms_m": float(np.sqrt(np.mean(ok["along_err_m"] ** 2))) if len(ok) else np.nan,
+        "across_rms_m": float(np.sqrt(np.mean(ok["across_err_m"] ** 2))) if len(ok) else np.nan,
+        "horiz_p95_m": float(np.percentile(np.hypot(ok["along_err_m"], ok["across_err_m"]), 95)) if len(ok) else np.nan,
+    }
+    if "phase_state" in g and g["phase_state"].notna().any():
+        ph = ok[ok["phase_state"].notna() & (ok["phase_state"] != "")]
+        fixed = ph["phase_state"] == "fixed"
+        wf = ph["wrong_fix"].dropna()
+        out.update({
+            "fix_rate": float(fixed.mean()) if len(ph) else np.nan,
+            "partial_rate": float((ph["phase_state"] == "partial").mean()) if len(ph) else np.nan,
+            "wrong_fix_rate": float((wf > 0.5).mean()) if len(wf) else np.nan,
+            "epochs_with_fix": int(len(wf)),
+            "fixed_horiz_rms_m": float(np.sqrt(np.mean(ph.loc[fixed, "along_err_m"] ** 2
+                                                       + ph.loc[fixed, "across_err_m"] ** 2))) if fixed.any() else np.nan,
+        })
+    return out
+
+
+def _ttff(g: pd.DataFrame, t0: float) -> float:
+    fixed = g[(g["phase_state"] == "fixed")]
+    return float(fixed["t_s"].min() - t0) if len(fixed) else np.nan
+
+
+def _mean_table(rows: list[dict], keys: list[str]) -> pd.DataFrame:
+    df = pd.DataFrame(rows)
+    num = [c for c in df.columns if c not in keys and pd.api.types.is_numeric_dtype(df[c])]
+    return df.groupby(keys, sort=False)[num].mean().reset_index()
+
+
+# ------------------------------------------------------------------------------------ part 1
+def part_init_drive(args: argparse.Namespace, out: Path) -> tuple[pd.DataFrame, pd.DataFrame, Path]:
+    rows, ttff_rows = [], []
+    first = None
+    for seed in args.seeds:
+        ov = [f"seed={seed}", f"sensors.uwb.profile=\"{args.uwb_profile}\"", _phase_solutions(args.uwb_sigma_m)]
+        if args.quick:
+            ov.append("duration_s=90")
+        folder = _run(ov, out / "runs" / f"init_drive_seed{seed}", SCENARIO)
+        first = first or folder
+        e = _segment(folder)
+        for (sol, seg), g in e.groupby(["solution", "segment"], sort=False):
+            rows.append({"solution": sol, "segment": seg, "seed": seed, **_scores(g)})
+        for (sol, veh), g in e[e["phase_state"].notna()].groupby(["solution", "vehicle"], sort=False):
+            if (g["phase_state"] == "").all():
+                continue
+            ttff_rows.append({"solution": sol, "vehicle": veh, "seed": seed,
+                              "ttff_s": _ttff(g, float(g.loc[g["initialized"].astype(bool), "t_s"].min()))})
+    assert first is not None
+    return _mean_table(rows, ["solution", "segment"]), pd.DataFrame(ttff_rows), first
+
+
+# ------------------------------------------------------------------------------------ part 2
+def _low_prns(folder: Path, t0: float, keep: int) -> tuple[list[int], float]:
+    """PRNs to remove so that only the ``keep`` highest satellites (at t0, lead vehicle) stay,
+    and the equivalent elevation mask (deg, halfway between the last kept and the first removed)."""
+    m = pd.read_parquet(folder / "measurements.parquet", columns=["t_s", "type", "vehicle", "prn", "elevation_rad"])
+    m = m[(m["type"] == "pseudorange") & np.isclose(m["t_s"], t0)]
+    el = m.groupby("prn")["elevation_rad"].max().sort_values(ascending=False)
+    low = sorted(int(p) for p in el.index[keep:])
+    mask = float(np.degrees(0.5 * (el.iloc[keep - 1] + el.iloc[keep]))) if len(el) > keep else 0.0
+    return low, mask
+
+
+def part_degraded(args: argparse.Namespace, out: Path) -> tuple[pd.DataFrame, pd.DataFrame]:
+    dur = 100.0 if args.quick else 180.0
+    t_mask, t_slip = 60.0, 60.0 + (20.0 if args.quick else 40.0)
+    base = ['network.name="open_highway"', f"duration_s={dur}", "clusters.0.vehicles=3", "clusters.0.lanes=[0]",
+            "clusters.0.time_gap_s=1.5", f"sensors.uwb.profile=\"{args.uwb_profile}\"",
+            "background.vehicles_per_hour=0.0"]
+    rows, refix = [], []
+    for seed in args.seeds:
+        probe = _run(base + [f"seed={seed}", "solutions=[]"], out / "runs" / f"degraded_probe_seed{seed}", save=True)
+        low, mask_deg = _low_prns(probe, t_mask, args.keep)
+        faults = (f"faults=[{{kind=\"satellites_lost\", start_s={t_mask}, duration_s={dur - t_mask + 1.0}, "
+                  f"prns={low}}}, {{kind=\"cycle_slip\", start_s={t_slip}, vehicles=[\"c1.1\", \"c1.2\"], size_cycles=3}}]")
+        folder = _run(base + [f"seed={seed}", _phase_solutions(args.uwb_sigma_m, bearing=False), faults],
+                      out / "runs" / f"degraded_seed{seed}")
+        e = pd.read_parquet(folder / "epochs.parquet")
+        n_sat = int(e.loc[(e["t_s"] > t_mask + 1.0) & (e["solution"] == "GPS"), "used_pr"].median()) + 1
+        for sol, g in e.groupby("solution", sort=False):
+            for win, lo, hi in (("full sky", 10.0, t_mask), ("masked", t_mask, t_slip), ("masked, after slip", t_slip, dur + 1)):
+                gw = g[(g["t_s"] >= lo) & (g["t_s"] < hi)]
+                rows.append({"solution": sol, "window": win, "seed": seed, "satellites_left": n_sat,
+                             "mask_deg": mask_deg, **_scores(gw)})
+            if (g["phase_state"].fillna("") != "").any():
+                for veh, gv in g.groupby("vehicle"):
+                    refix.append({"solution": sol, "vehicle": veh, "seed": seed,
+                                  "refix_after_slip_s": _ttff(gv[gv["t_s"] >= t_slip], t_slip)})
+    return _mean_table(rows, ["solution", "window"]), pd.DataFrame(refix)
+
+
+# ------------------------------------------------------------------------------------ part 3
+def part_slips(args: argparse.Namespace, out: Path) -> pd.DataFrame:
+    rows = []
+    t1, t2 = 30.0, 45.0
+    for seed in args.seeds:
+        ov = ['network.name="open_highway"', "duration_s=60", "clusters.0.vehicles=3", "clusters.0.lanes=[0]",
+              f"seed={seed}", "background.vehicles_per_hour=0.0",
+              'solutions=[{name="GPS-phase", sensors=["gnss"], carrier_phase=true, pseudorange_sigma_m=1.0}]',
+              # one satellite of c1.1 (the first PRN it tracks at t1 is taken below), then all of c1.2
+              f'faults=[{{kind="cycle_slip", start_s={t1}, vehicles=["c1.1"], prns=[PRN], size_cycles=1}}, '
+              f'{{kind="cycle_slip", start_s={t2}, vehicles=["c1.2"], size_cycles=-2}}]']
+        probe = _run(ov[:-2] + ["solutions=[]"], out / "runs" / f"slips_probe_seed{seed}", save=True)
+        m = pd.read_parquet(probe / "measurements.parquet", columns=["t_s", "type", "vehicle", "prn", "elevation_rad"])
+        m = m[(m["type"] == "pseudorange") & (m["vehicle"] == "c1.1") & np.isclose(m["t_s"], t1)]
+        prn = int(m.sort_values("elevation_rad")["prn"].iloc[-1])  # the highest: the DD reference
+        ov[-1] = ov[-1].replace("PRN", str(prn))
+        folder = _run(ov, out / "runs" / f"slips_seed{seed}")
+        s = json.loads((folder / "summary.json").read_text())
+        e = pd.read_parquet(folder / "epochs.parquet")
+        counters = s["filter_counters"]["GPS-phase"]
+        for veh, t_slip, what in (("c1.1", t1, f"1 cycle on PRN {prn} (the highest)"), ("c1.2", t2, "-2 cycles on all")):
+            g = e[e["vehicle"] == veh]
+            after = g[g["t_s"] >= t_slip]
+            wf = g["wrong_fix"].dropna()
+            rows.append({"seed": seed, "vehicle": veh, "slip": what, "slip_detections_run_total": counters.get("phase_slip", 0),
+                         "refix_s": _ttff(after, t_slip), "wrong_fix_epochs": int((wf > 0.5).sum()),
+                         "max_horiz_err_after_m": float(np.max(np.hypot(after["along_err_m"], after["across_err_m"])))})
+    return pd.DataFrame(rows)
+
+
+# ------------------------------------------------------------------------------------ output
+def _timeline(folder: Path, path: Path) -> None:
+    import matplotlib
+
+    matplotlib.use("Agg")
+    import matplotlib.pyplot as plt
+
+    e = _segment(folder)
+    sols = [s for s in e["solution"].unique()]
+    fig, axes = plt.subplots(2, 1, figsize=(10, 6.5), sharex=True)
+    v = sorted(e["vehicle"].unique())[-1]
+    codes = {"float": 0, "partial": 1, "fixed": 2}
+    for k, sol in enumerate(sols):
+        g = e[(e["solution"] == sol) & (e["vehicle"] == v)]
+        axes[0].semilogy(g["t_s"], np.hypot(g["along_err_m"], g["across_err_m"]).clip(lower=1e-3), lw=0.8, label=sol)
+        if g["phase_state"].notna().any():
+            st = g["phase_state"].map(codes)
+            axes[1].plot(g["t_s"], st + 0.08 * k, ".", ms=1.5, label=sol)
+    t_open = e.loc[(e["segment"] == "canyon") & (e["vehicle"] == v), "t_s"].min()
+    for ax in axes:
+        ax.axvline(t_open, color="k", lw=0.8, ls="--")
+    axes[0].set_ylabel(f"horizontal error of {v} (m)")
+    axes[0].legend(fontsize=8)
+    axes[0].set_title("open sky | urban canyon (dashed: the car enters the canyon)")
+    axes[1].set_yticks([0, 1, 2], ["float", "partial", "fixed"])
+    axes[1].set_xlabel("t (s)")
+    axes[1].legend(fontsize=8, markerscale=6)
+    fig.tight_layout()
+    fig.savefig(path, dpi=110)
+    plt.close(fig)
+
+
+def _md(df: pd.DataFrame) -> str:
+    cols = list(df.columns)
+    lines = ["| " + " | ".join(cols) + " |", "|" + "---|" * len(cols)]
+    for _, r in df.iterrows():
+        cells = [f"{v:.3f}" if isinstance(v, float) else str(v) for v in r.tolist()]
+        lines.append("| " + " | ".join(cells) + " |")
+    return "\n".join(lines)
+
+
+def main(argv: list[str] | None = None) -> int:
+    ap = argparse.ArgumentParser(description=__doc__.split("\n")[0])
+    ap.add_argument("--out", required=True, type=Path)
+    ap.add_argument("--seeds", type=int, nargs="+", default=[1, 2, 3])
+    ap.add_argument("--uwb-profile", default="tdc", choices=["tdc", "mssi", "ideal"])
+    ap.add_argument("--uwb-sigma-m", type=float, default=0.1,
+                    help="filter's UWB sigma with bias/scale states (radio noise + unmodelled multipath)")
+    ap.add_argument("--keep", type=int, default=4,
+                    help="degraded sky: satellites kept (the highest; thesis ch. 4: a 40 deg mask left 4)")
+    ap.add_argument("--parts", nargs="+", default=["init_drive", "degraded", "slips"],
+                    choices=["init_drive", "degraded", "slips"])
+    ap.add_argument("--quick", action="store_true", help="one seed, shorter runs (smoke test)")
+    args = ap.parse_args(argv)
+    if args.quick:
+        args.seeds = args.seeds[:1]
+    out: Path = args.out
+    out.mkdir(parents=True, exist_ok=True)
+    md = [f"# Carrier phase (seeds {args.seeds}, UWB profile {args.uwb_profile})", ""]
+    if "init_drive" in args.parts:
+        t1, ttff, first = part_init_drive(args, out)
+        t1.to_csv(out / "init_drive.csv", index=False)
+        ttff.to_csv(out / "init_drive_ttff.csv", index=False)
+        _timeline(first, out / "carrier_phase_timeline.png")
+        md += ["## 1. Initialization drive: open sky, then the urban canyon", "", _md(t1), "",
+               "Time to first fix (s, from the vehicle's first estimate):", "",
+               _md(ttff.groupby("solution", sort=False)["ttff_s"].describe()[["count", "mean", "min", "max"]]
+                   .reset_index()), ""]
+    if "degraded" in args.parts:
+        t2, refix = part_degraded(args, out)
+        t2.to_csv(out / "degraded.csv", index=False)
+        refix.to_csv(out / "degraded_refix.csv", index=False)
+        md += [f"## 2. Degraded sky: all but the {args.keep} highest satellites removed after 60 s, "
+               "the followers' carriers slip later", "",
+               _md(t2), "", "Re-fix time after the all-satellite slip (s; NaN: never):", "",
+               _md(refix.groupby("solution", sort=False)["refix_after_slip_s"]
+                   .agg(["count", "mean", "min", "max", lambda s: int(s.isna().sum())])
+                   .rename(columns={"<lambda_0>": "never"}).reset_index()), ""]
+    if "slips" in args.parts:
+        t3 = part_slips(args, out)
+        t3.to_csv(out / "slips.csv", index=False)
+        md += ["## 3. Cycle slips in the open (GPS-phase)", "", _md(t3), ""]
+    (out / "carrier_phase.md").write_text("\n".join(md) + "\n", encoding="utf-8")
+    print("\n".join(md))
+    return 0
+
+
+if __name__ == "__main__":
+    sys.exit(main())
