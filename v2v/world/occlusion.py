@@ -169,7 +169,8 @@ _JIT = {"cache": True, "nogil": True, "error_model": "numpy"}
 
 @njit(**_JIT)
 def _wall_crossings_kernel(
-    p0, p1, skip_start_m, skip_end_m, h_max, wa, wb, w_h, w_len, b_first, b_bbox
+    p0, p1, skip_start_m, skip_end_m, h_max, wa, wb, w_h, w_len, b_first, b_bbox, b_order, b_x0_sorted, b_width_max,
+    any_hit,
 ):  # pragma: no cover - compiled
     """First blocking wall crossing of each segment (the wall part of ``_building_hits``).
 
@@ -178,12 +179,17 @@ def _wall_crossings_kernel(
     (preceded by the envelope test the spatial index does), ``t = clip(cross(a - p0, e) /
     cross(d, e))``, grazing rejection, ``z(t) < h_wall`` and the skip distances. Buildings
     whose bounding box misses the sub-segment's envelope are skipped (their walls' envelopes
-    miss it too). Returns per segment the smallest ``t`` (inf if none), the building of the
-    first wall holding it (-1), and whether any blocking crossing belongs to a building whose
-    roof the segment descends through (``z0 > h > z1``): those need the roof test.
+    miss it too); only buildings whose box starts (``x0``, sorted: ``b_order``, ``b_x0_sorted``)
+    within ``[sx0 - widest box - 1 m, sx1]`` can overlap the envelope's x range, so only those are
+    visited. Returns per segment the smallest ``t`` (inf if none), the lowest-index building
+    holding it (-1; the building-order loop's first), and whether any blocking crossing belongs
+    to a building whose roof the segment descends through (``z0 > h > z1``): those need the roof
+    test. Buildings are visited in the segment's x direction, stopping once no further box can
+    hold an earlier crossing (segments that do not descend). With ``any_hit``, such a segment
+    stops at its first blocking crossing found: ``t`` is then *a* crossing (for "is it
+    clear?"), not necessarily the first.
     """
     n = p0.shape[0]
-    nb = b_first.shape[0] - 1
     t_best = np.full(n, np.inf)
     b_best = np.full(n, -1, dtype=np.int64)
     roof = np.zeros(n, dtype=np.bool_)
@@ -209,7 +215,22 @@ def _wall_crossings_kernel(
         bx, by = x0 + tb * dx, y0 + tb * dy
         sx0, sx1 = min(ax, bx), max(ax, bx)
         sy0, sy1 = min(ay, by), max(ay, by)
-        for b in range(nb):
+        lo = np.searchsorted(b_x0_sorted, sx0 - b_width_max - 1.0)
+        hi = np.searchsorted(b_x0_sorted, sx1, side="right")
+        # Buildings are visited along the segment's x direction; once a crossing at t_best is
+        # known, a building whose box starts (1 m margin) beyond x(t_best) cannot hold a crossing
+        # at t <= t_best: stop (not for descending segments, whose roof flags need every wall).
+        forward = dx >= 0.0
+        can_stop = dz >= 0.0
+        for kb in range(hi - lo):
+            ib = lo + kb if forward else hi - 1 - kb
+            if can_stop and t_best[i] <= 1.0:
+                if any_hit:
+                    break
+                x_hit = x0 + t_best[i] * dx
+                if (b_x0_sorted[ib] > x_hit + 1.0) if forward else (b_x0_sorted[ib] + b_width_max + 1.0 < x_hit):
+                    break
+            b = b_order[ib]
             if b_bbox[b, 0] > sx1 or b_bbox[b, 2] < sx0 or b_bbox[b, 1] > sy1 or b_bbox[b, 3] < sy0:
                 continue
             for w in range(b_first[b], b_first[b + 1]):
@@ -239,7 +260,7 @@ def _wall_crossings_kernel(
                     continue
                 if z0 > w_h[w] and p1[i, 2] < w_h[w]:
                     roof[i] = True
-                if t < t_best[i]:
+                if t < t_best[i] or (t == t_best[i] and b < b_best[i]):
                     t_best[i] = t
                     b_best[i] = b
     return t_best, b_best, roof
@@ -266,64 +287,81 @@ def _sky_echo_candidates_kernel(
     walls = np.empty(nw, dtype=np.int64)
     deltas = np.empty(nw)
     hzs = np.empty(nw)
-    for fill in range(2):
-        if fill == 0:
-            count = 0
-        else:
-            ri = np.empty(count, dtype=np.int64)
-            exc = np.empty(count)
-            r3 = np.empty((count, 3))
-            far = np.empty((count, 3))
-            count = 0
-        for a in range(na):
-            if ray_first[a] == ray_first[a + 1]:
-                continue
-            xx, xy, xz = ants[a, 0], ants[a, 1], ants[a, 2]
-            nfront = 0
-            for w in range(nw):
-                delta = (xx - wa[w, 0]) * w_nx[w] + (xy - wa[w, 1]) * w_ny[w]
-                hz = w_h[w] - xz
-                if delta > 0.0 and hz > 0.0:
-                    walls[nfront] = w
-                    deltas[nfront] = delta
-                    hzs[nfront] = hz
-                    nfront += 1
-            for q in range(ray_first[a], ray_first[a + 1]):
-                i = order[q]
-                for j in range(nfront):
-                    w = walls[j]
-                    delta = deltas[j]
-                    nx, ny = w_nx[w], w_ny[w]
-                    c = s_hx[i] * nx + s_hy[i] * ny
-                    if not (c > 0.0 and delta * tan_el[i] < hzs[j]):
-                        continue
-                    tau = delta / c
-                    rx = xx + tau * (s_hx[i] - 2.0 * c * nx)
-                    ry = xy + tau * (s_hy[i] - 2.0 * c * ny)
-                    s_wall = ((rx - wa[w, 0]) * w_dir[w, 0] + (ry - wa[w, 1]) * w_dir[w, 1]) / w_len[w]
-                    if not (s_wall >= 0.0 and s_wall <= 1.0):
-                        continue
-                    z_r = xz + tau * se[i]
-                    if not (z_r < w_h[w] and tau * ce[i] <= max_dist_m):
-                        continue
-                    if fill == 1:
-                        ri[count] = i
-                        exc[count] = 2.0 * delta * c
-                        r3[count, 0], r3[count, 1], r3[count, 2] = rx, ry, z_r
-                        far[count, 0] = rx + max_dist_m * s_hx[i] / ce[i]
-                        far[count, 1] = ry + max_dist_m * s_hy[i] / ce[i]
-                        far[count, 2] = z_r + max_dist_m * tan_el[i]
-                    count += 1
-    return ri, exc, r3, far
+    f_nx = np.empty(nw)
+    f_ny = np.empty(nw)
+    cap = max(64, 4 * ray_ant.shape[0])
+    ri = np.empty(cap, dtype=np.int64)
+    exc = np.empty(cap)
+    r3 = np.empty((cap, 3))
+    far = np.empty((cap, 3))
+    count = 0
+    for a in range(na):
+        if ray_first[a] == ray_first[a + 1]:
+            continue
+        xx, xy, xz = ants[a, 0], ants[a, 1], ants[a, 2]
+        # The antenna's flattest ray: a wall failing ``d_w tan(el) < h_w - z_a`` for it fails for
+        # every ray of the antenna (fl(d t) is non-decreasing in t), so it is dropped here.
+        q0, q1 = ray_first[a], ray_first[a + 1]
+        tan_lo = np.inf
+        for q in range(q0, q1):
+            tan_lo = min(tan_lo, tan_el[order[q]])
+        nfront = 0
+        for w in range(nw):
+            delta = (xx - wa[w, 0]) * w_nx[w] + (xy - wa[w, 1]) * w_ny[w]
+            hz = w_h[w] - xz
+            if delta > 0.0 and hz > 0.0 and delta * tan_lo < hz:
+                walls[nfront] = w
+                deltas[nfront] = delta
+                hzs[nfront] = hz
+                f_nx[nfront] = w_nx[w]
+                f_ny[nfront] = w_ny[w]
+                nfront += 1
+        for q in range(q0, q1):
+            i = order[q]
+            sx, sy, te = s_hx[i], s_hy[i], tan_el[i]
+            for j in range(nfront):
+                nx, ny = f_nx[j], f_ny[j]
+                c = sx * nx + sy * ny
+                if not (c > 0.0 and deltas[j] * te < hzs[j]):
+                    continue
+                w = walls[j]
+                delta = deltas[j]
+                tau = delta / c
+                rx = xx + tau * (sx - 2.0 * c * nx)
+                ry = xy + tau * (sy - 2.0 * c * ny)
+                s_wall = ((rx - wa[w, 0]) * w_dir[w, 0] + (ry - wa[w, 1]) * w_dir[w, 1]) / w_len[w]
+                if not (s_wall >= 0.0 and s_wall <= 1.0):
+                    continue
+                z_r = xz + tau * se[i]
+                if not (z_r < w_h[w] and tau * ce[i] <= max_dist_m):
+                    continue
+                if count == cap:  # grow the outputs
+                    cap *= 2
+                    ri2, exc2, r32, far2 = np.empty(cap, dtype=np.int64), np.empty(cap), np.empty((cap, 3)), np.empty(
+                        (cap, 3))
+                    ri2[:count], exc2[:count], r32[:count], far2[:count] = ri, exc, r3, far
+                    ri, exc, r3, far = ri2, exc2, r32, far2
+                ri[count] = i
+                exc[count] = 2.0 * delta * c
+                r3[count, 0], r3[count, 1], r3[count, 2] = rx, ry, z_r
+                far[count, 0] = rx + max_dist_m * s_hx[i] / ce[i]
+                far[count, 1] = ry + max_dist_m * s_hy[i] / ce[i]
+                far[count, 2] = z_r + max_dist_m * tan_el[i]
+                count += 1
+    return ri[:count].copy(), exc[:count].copy(), r3[:count].copy(), far[:count].copy()
 
 
 @njit(**_JIT)
-def _in_any_box_kernel(p, bbox):  # pragma: no cover - compiled
-    """Whether each point's (x, y) lies in at least one closed box ``(x0, y0, x1, y1)``."""
+def _in_any_box_kernel(p, bbox, b_order, b_x0_sorted, b_width_max):  # pragma: no cover - compiled
+    """Whether each point's (x, y) lies in at least one closed box ``(x0, y0, x1, y1)`` (only boxes
+    starting within ``[x - widest box - 1 m, x]`` are visited: ``b_order`` sorts them by ``x0``)."""
     out = np.zeros(p.shape[0], dtype=np.bool_)
     for i in range(p.shape[0]):
         x, y = p[i, 0], p[i, 1]
-        for b in range(bbox.shape[0]):
+        lo = np.searchsorted(b_x0_sorted, x - b_width_max - 1.0)
+        hi = np.searchsorted(b_x0_sorted, x, side="right")
+        for ib in range(lo, hi):
+            b = b_order[ib]
             if bbox[b, 0] <= x <= bbox[b, 2] and bbox[b, 1] <= y <= bbox[b, 3]:
                 out[i] = True
                 break
@@ -339,9 +377,11 @@ def warm_up() -> None:
     p = np.zeros((1, 3))
     w = np.zeros((1, 2))
     one = np.ones(1)
-    _wall_crossings_kernel(p, p, 0.0, 0.0, 1.0, w, w + 1.0, one, one, np.array([0, 1]), np.zeros((1, 4)))
-    _sky_echo_candidates_kernel(p, np.zeros(1, dtype=np.int64), one, one, one, one, one, 1.0, w, one, one, w, one, one)
-    _in_any_box_kernel(p, np.zeros((1, 4)))
+    i0 = np.zeros(1, dtype=np.int64)
+    _wall_crossings_kernel(p, p, 0.0, 0.0, 1.0, w, w + 1.0, one, one, np.array([0, 1]), np.zeros((1, 4)), i0,
+                           np.zeros(1), 0.0, False)
+    _sky_echo_candidates_kernel(p, i0, one, one, one, one, one, 1.0, w, one, one, w, one, one)
+    _in_any_box_kernel(p, np.zeros((1, 4)), i0, np.zeros(1), 0.0)
 
 
 class OcclusionGeometry:
@@ -408,6 +448,7 @@ class OcclusionGeometry:
                 np.maximum.at(bbox[:, 2], self._w_bld, end[:, 0])
                 np.maximum.at(bbox[:, 3], self._w_bld, end[:, 1])
         self._b_bbox = bbox
+        self._index_boxes()
         self._w_n = (
             np.column_stack([self._w_dir[:, 1], -self._w_dir[:, 0]]) if self._w_len.size else np.zeros((0, 2))
         )
@@ -439,6 +480,16 @@ class OcclusionGeometry:
         )
         self._f_tree = shapely.STRtree(self._f_polys)
 
+    def _index_boxes(self) -> None:
+        """Building boxes sorted by their west edge, and the widest box (compiled kernels visit
+        only the boxes that can overlap a query's x range)."""
+        bbox = self._b_bbox
+        self._b_order = np.argsort(bbox[:, 0], kind="stable").astype(np.int64)
+        self._b_x0_sorted = bbox[self._b_order, 0].copy()
+        width = bbox[:, 2] - bbox[:, 0]
+        width = width[np.isfinite(width)]
+        self._b_width_max = float(width.max()) if width.size else 0.0
+
     # ------------------------------------------------------------------ buildings
     def _building_hits(
         self,
@@ -449,11 +500,14 @@ class OcclusionGeometry:
         skip_end_m: float = 0.0,
         check_start_inside: bool = True,
         check_end_inside: bool = True,
+        any_hit: bool = False,
     ) -> tuple[FloatArray, NDArray[np.int64]]:
         """First entry (segment parameter t in [0, 1], inf if none) of segments into buildings.
 
         Crossings within ``skip_start_m`` / ``skip_end_m`` (horizontal) of ``p0`` / ``p1``
-        are ignored (used for legs starting or ending on a reflecting wall).
+        are ignored (used for legs starting or ending on a reflecting wall). ``any_hit``: only
+        whether ``t`` is finite is wanted (blocked or clear); the compiled path may then return
+        any blocking crossing instead of the first.
         """
         k = len(p0)
         if k == 0 or self._w_len.size == 0:
@@ -467,7 +521,7 @@ class OcclusionGeometry:
         p1 = np.ascontiguousarray(p1, dtype=float)
         t_w, b_w, roof = _wall_crossings_kernel(
             p0, p1, float(skip_start_m), float(skip_end_m), self._h_max, self._wa, self._wb, self._w_h,
-            self._w_len, self._b_first, self._b_bbox,
+            self._w_len, self._b_first, self._b_bbox, self._b_order, self._b_x0_sorted, self._b_width_max, any_hit,
         )
         # Roofs matter only for segments that descend through one: a blocking wall crossing of
         # a building below p0 and above p1 (flagged), or p1 inside a footprint (needs dz < 0).
@@ -480,7 +534,8 @@ class OcclusionGeometry:
             )
         if check_start_inside:
             # Only points inside some footprint's bounding box can be within a footprint.
-            cand = np.flatnonzero(_in_any_box_kernel(p0, self._b_bbox))
+            cand = np.flatnonzero(_in_any_box_kernel(p0, self._b_bbox, self._b_order, self._b_x0_sorted,
+                                                     self._b_width_max))
             if cand.size:
                 pi, bi = _query_pairs(self._b_tree, shapely.points(p0[cand, :2]), predicate="within")
                 pi = cand[pi]
@@ -594,11 +649,12 @@ class OcclusionGeometry:
 
     def _legs_clear(self, a: FloatArray, r: FloatArray, b: FloatArray) -> NDArray[np.bool_]:
         """Both legs a->r and r->b free of buildings; r lies on the reflecting wall."""
-        t1, _ = self._building_hits(a, r, skip_end_m=_REFLECTION_POINT_TOL_M, check_end_inside=False)
+        t1, _ = self._building_hits(a, r, skip_end_m=_REFLECTION_POINT_TOL_M, check_end_inside=False, any_hit=True)
         clear = ~np.isfinite(t1)
         # The long leg only where the short one is clear (each segment is tested on its own).
         idx = np.flatnonzero(clear)
-        t2, _ = self._building_hits(r[idx], b[idx], skip_start_m=_REFLECTION_POINT_TOL_M, check_start_inside=False)
+        t2, _ = self._building_hits(r[idx], b[idx], skip_start_m=_REFLECTION_POINT_TOL_M, check_start_inside=False,
+                                    any_hit=True)
         clear[idx] = ~np.isfinite(t2)
         return clear
 

@@ -44,6 +44,7 @@ from __future__ import annotations
 from dataclasses import dataclass
 
 import numpy as np
+from numba import njit
 from numpy.typing import ArrayLike, NDArray
 
 from v2v.errors import UserError
@@ -408,3 +409,104 @@ def _cross3(a: F64, b: F64) -> F64:
     out[..., 1] = a[..., 2] * b[..., 0] - a[..., 0] * b[..., 2]
     out[..., 2] = a[..., 0] * b[..., 1] - a[..., 1] * b[..., 0]
     return out
+
+
+# --------------------------------------------------------------------------- compiled scalar forms
+# The receiver's per-(vehicle, satellite) kernel (v2v.sensors.gnss.receiver) evaluates the
+# same formulas as the array functions above, one pair at a time inside a numba loop; the
+# tests (tests/test_gnss_kernels.py) check that the two agree to float rounding.
+
+_JIT = {"cache": True, "nogil": True, "error_model": "numpy"}
+
+
+@njit(**_JIT)
+def klobuchar_delay_scalar_s(lat_rad, lon_rad, el_rad, az_rad, t_gps_s, alpha, beta):  # pragma: no cover
+    """:func:`klobuchar_delay_s` for one signal (compiled); ``alpha``/``beta``: (4,) arrays."""
+    return _klobuchar_core_s(lat_rad, lon_rad, el_rad, np.cos(az_rad), np.sin(az_rad), t_gps_s, alpha, beta)
+
+
+@njit(**_JIT)
+def _klobuchar_core_s(lat_rad, lon_rad, el_rad, cos_az, sin_az, t_gps_s, alpha, beta):  # pragma: no cover
+    sc = np.pi
+    e_sc = el_rad / sc
+    psi = 0.0137 / (e_sc + 0.11) - 0.022
+    phi_i = min(max(lat_rad / sc + psi * cos_az, -0.416), 0.416)
+    lam_i = lon_rad / sc + psi * sin_az / np.cos(phi_i * sc)
+    phi_m = phi_i + 0.064 * np.cos((lam_i - 1.617) * sc)
+    t = np.mod(4.32e4 * lam_i + t_gps_s, 86400.0)
+    f = 1.0 + 16.0 * (0.53 - e_sc) ** 3
+    per = 0.0
+    amp = 0.0
+    p = 1.0
+    for n in range(beta.shape[0]):
+        per += beta[n] * p
+        amp += alpha[n] * p
+        p *= phi_m
+    per = max(per, 72000.0)
+    amp = max(amp, 0.0)
+    x = 2.0 * np.pi * (t - 50400.0) / per
+    if abs(x) < 1.57:
+        return f * (5e-9 + amp * (1.0 - x**2 / 2.0 + x**4 / 24.0))
+    return f * 5e-9
+
+
+@njit(**_JIT)
+def iono_slant_delay_scalar_m(
+    lat_rad, lon_rad, el_rad, az_rad, t_gps_s, scale, alpha, beta, shell_height_m, ref_lat_rad, ref_lon_rad,
+    k_en, omega_radps, phase_rad, amp_m,
+):  # pragma: no cover
+    """:meth:`IonosphereField.slant_delay_m` for one signal (compiled; field passed as arrays)."""
+    return iono_slant_delay_core_m(lat_rad, lon_rad, np.sin(lat_rad), np.cos(lat_rad), el_rad, np.cos(az_rad),
+                                   np.sin(az_rad), t_gps_s, scale, alpha, beta, shell_height_m, ref_lat_rad,
+                                   np.cos(ref_lat_rad), ref_lon_rad, k_en, omega_radps, phase_rad, amp_m)
+
+
+@njit(**_JIT)
+def iono_slant_delay_core_m(
+    lat_rad, lon_rad, sin_lat, cos_lat, el_rad, cos_az, sin_az, t_gps_s, scale, alpha, beta, shell_height_m,
+    ref_lat_rad, cos_ref_lat, ref_lon_rad, k_en, omega_radps, phase_rad, amp_m,
+):  # pragma: no cover
+    """:func:`iono_slant_delay_scalar_m` with the sines/cosines of latitude and azimuth given
+    (the receiver kernel shares them between pairs and models)."""
+    klob = SPEED_OF_LIGHT_MPS * _klobuchar_core_s(lat_rad, lon_rad, el_rad, cos_az, sin_az, t_gps_s, alpha, beta)
+    ce = EARTH_RADIUS_M * np.cos(el_rad) / (EARTH_RADIUS_M + shell_height_m)
+    psi = np.pi / 2 - el_rad - np.arcsin(ce)
+    s_psi = np.sin(psi)
+    lat_i = np.arcsin(sin_lat * np.cos(psi) + cos_lat * s_psi * cos_az)
+    lon_i = lon_rad + np.arcsin(s_psi * sin_az / np.cos(lat_i))
+    e = EARTH_RADIUS_M * (lon_i - ref_lon_rad) * cos_ref_lat
+    n = EARTH_RADIUS_M * (lat_i - ref_lat_rad)
+    resid = 0.0
+    for j in range(amp_m.shape[0]):
+        resid += np.cos(e * k_en[j, 0] + n * k_en[j, 1] - omega_radps[j] * t_gps_s + phase_rad[j]) * amp_m[j]
+    obliq = 1.0 / np.sqrt(1.0 - ce**2)
+    return max(scale * klob + obliq * resid, 0.0)
+
+
+@njit(**_JIT)
+def tropo_slant_delay_scalar_m(
+    lat_rad, lon_rad, h_m, el_rad, temperature_sea_level_c, relative_humidity, zenith_residual_m, gradient_e,
+    gradient_n, ref_lat_rad, ref_lon_rad,
+):  # pragma: no cover
+    """:meth:`TroposphereField.slant_delay_m` for one signal (compiled)."""
+    zenith = tropo_zenith_scalar_m(lat_rad, lon_rad, h_m, temperature_sea_level_c, relative_humidity,
+                                   zenith_residual_m, gradient_e, gradient_n, ref_lat_rad, ref_lon_rad)
+    s = np.sin(el_rad)
+    return 1.001 / np.sqrt(0.002001 + s**2) * zenith
+
+
+@njit(**_JIT)
+def tropo_zenith_scalar_m(
+    lat_rad, lon_rad, h_m, temperature_sea_level_c, relative_humidity, zenith_residual_m, gradient_e, gradient_n,
+    ref_lat_rad, ref_lon_rad,
+):  # pragma: no cover
+    """Zenith delay of :meth:`TroposphereField.slant_delay_m` at one receiver (compiled)."""
+    h = min(max(h_m, 0.0), 1e4)
+    pres = 1013.25 * (1.0 - 2.2557e-5 * h) ** 5.2568
+    temp = temperature_sea_level_c - 6.5e-3 * h + 273.16
+    e = 6.108 * relative_humidity * np.exp((17.15 * temp - 4684.0) / (temp - 38.45))
+    zhd = 0.0022768 * pres / (1.0 - 0.00266 * np.cos(2.0 * lat_rad) - 0.00028 * h / 1e3)
+    zwd = 0.002277 * (1255.0 / temp + 0.05) * e
+    de = EARTH_RADIUS_M * (lon_rad - ref_lon_rad) * np.cos(ref_lat_rad)
+    dn = EARTH_RADIUS_M * (lat_rad - ref_lat_rad)
+    return zhd + zwd + zenith_residual_m + gradient_e * de + gradient_n * dn
