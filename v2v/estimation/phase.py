@@ -89,7 +89,10 @@ class PhaseConfig:
         (RTKLIB's "min lock"): an arc that starts on an echo-only signal usually ends or
         slips within seconds as the car moves, before it can be fixed at a biased value.
     ar_min_dd : a vehicle's first fix needs at least this many eligible DD ambiguities (4:
-        position + one redundant, so one biased satellite shows in the ratio test).
+        position + one redundant, so one biased satellite shows in the ratio test). A solution
+        with UWB ranges has redundancy from them (MacGougan (2009) section 4.3.2: with a 40 deg
+        mask "only 4 satellites are available and thus the GPS only solution has no
+        redundancy" while GPS+UWB fixes): the pipeline uses 3 there.
     reset_after_rejections : consecutive rejected epochs after which an ambiguity is removed.
     """
 
