@@ -55,7 +55,7 @@ from dataclasses import dataclass, field
 import numpy as np
 from numpy.typing import NDArray
 
-from v2v.estimation.ambiguity import partial_fix, reference_satellite, sd_to_dd
+from v2v.estimation.ambiguity import bootstrapped_success_rate, partial_fix, reference_satellite, sd_to_dd
 from v2v.estimation.layout import AMBIGUITY, StateLayout
 from v2v.estimation.models import GnssGeometry, Row
 from v2v.measmodels import range_difference_m, range_jacobian
@@ -272,7 +272,8 @@ def resolve_vehicle(x: F64, P: F64, layout: StateLayout, v: str, el_by_prn: dict
         return st, []
     st.n_fixed = res.n_fixed
     st.ratio = res.ratio
-    st.success_rate = res.success_rate
+    # of the fixed subset (eq. 3.39); with nothing fixed, of the whole set (eq. 3.36)
+    st.success_rate = res.success_rate if res.n_fixed else bootstrapped_success_rate(res.Qz)
     if res.n_fixed == 0:
         return st, []
     if len(prns) - 1 < cfg.ar_min_dd and not _held(Qa, res, cfg):
