@@ -11,11 +11,12 @@ state / covariance difference between the engines relative to each quantity's sc
 (``|a - b| / (|b| + sigma)``; they must agree to 1e-9: tests/test_engines_agree.py).
 
 Plain Python, no asserts: numbers depend on the machine; compare ratios, not seconds.
-Both engines share the epoch sequencing of the base class (GNSS row building, screening,
-initialization, SD pseudoranges); the production engine runs the UWB, bearing and SD
-Doppler sequences and the prediction as compiled batch kernels, the reference one Python
-scalar update (dense filterpy) per measurement. Compare the production column against an
-earlier run too.
+Both engines share the epoch sequencing of the base class (satellite pairing, screening,
+clock-jump test, initialization), which runs as compiled kernels for both; the production
+engine also runs each vehicle's whole SD pseudorange / SD Doppler epoch (rows, clock-jump
+test, screen, order, sequential updates) in one kernel call, the UWB and bearing batches and the
+prediction as compiled kernels, the reference one Python scalar update (dense filterpy) per
+measurement. Compare the production column against an earlier run too.
 ``--profile N`` prints the cProfile top functions of the production engine at N vehicles
 (where the remaining time goes) instead of the table.
 

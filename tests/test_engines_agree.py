@@ -59,3 +59,28 @@ def test_engines_agree_multi_vehicle_gnss_uwb_bearing_azimuth_unknown(azimuth_ra
         assert "uwb_constraint" in kinds
     assert prod.counters == ref.counters
     assert n_checked == len(eps)
+
+
+def test_engines_agree_ten_vehicle_benchmark_cluster():
+    """The benchmark's cluster and seed (benchmarks/bench_filter.py) at N = 10, 5 s: 9
+    vehicles' SD pseudorange and Doppler batches per epoch, each reducing a clock / drift
+    variance by orders of magnitude (the drift's GM sigma is 1000 m/s). That is where a
+    numerically weaker covariance update shows (a rank-|I| "subspace" form of the batch
+    disagreed by 1.2e-7 in this benchmark case while the 4-vehicle case above still
+    passed), so it is checked on this size too, to the same 1e-9 (module docstring)."""
+    cfg = FilterConfig()
+    scn = SimScenario(n_vehicles=10, duration_s=5.0, turn_rate_rps=0.05, bearing_vehicles=("lead", "v1"),
+                      lane_offsets_m=(0.0, 3.5, -3.5))
+    ids = vehicle_ids(10)
+    lay = StateLayout.build(lead="lead", vehicles=ids[1:], azimuth_vehicles=("lead", "v1"), azimuth_rates=True)
+    eps = simulate(scn, cfg, np.random.default_rng(1))
+    prod, ref = ClusterEkf(lay, cfg), ReferenceClusterEkf(lay, cfg)
+    for (_ep, info_p), (_, info_r) in zip(run_filter(prod, eps, scn.dt_s), run_filter(ref, eps, scn.dt_s),
+                                         strict=True):
+        assert [(i.kind, i.vehicles, i.prn, i.accepted) for i in info_p] == \
+               [(i.kind, i.vehicles, i.prn, i.accepted) for i in info_r]
+        xp, xr, pp, pr = prod.x, ref.x, prod.P, ref.P
+        sd = np.sqrt(np.abs(np.diag(pr)))
+        np.testing.assert_array_less(np.abs(xp - xr), 1e-9 * (np.abs(xr) + sd) + 1e-300)
+        np.testing.assert_array_less(np.abs(pp - pr), 1e-9 * (np.abs(pr) + np.outer(sd, sd)) + 1e-300)
+    assert prod.counters == ref.counters

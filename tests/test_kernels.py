@@ -335,3 +335,214 @@ def test_bearing_batch_deferred_rank_k_equals_sequential_updates():
     assert (st == kernels.ACCEPTED).all()
     _assert_update_close(x, P, xe, pe, tol=1e-9)
     assert np.array_equal(P, P.T)
+
+
+# --------------------------------------------------------------------------- GNSS epoch sequencing
+def _sd_pr_model(rot, base, sv, rho_lead, ps=0, iclk=3):
+    def f(xx, o):
+        return np.linalg.norm(sv[o] - (base + xx[ps:ps + 3] @ rot)) - rho_lead[o] + xx[iclk]
+    return f
+
+
+@pytest.mark.parametrize("with_rejection", [False, True])
+def test_sd_pseudorange_batch_equals_sequential_textbook_updates(with_rejection):
+    """9 SD pseudoranges of one vehicle (the batch defers the covariance updates,
+    kernels.lazy_scalar_update) equal 9 textbook sequential updates on the dense P, each
+    re-linearized at the current x (row: minus the ENU unit line of sight, 1 for the clock;
+    checked against finite differences above). Only the summation order differs, so they
+    agree to round-off: P to 1e-9 of each sd product (the clock variance drops by ~1e3 in
+    the first update, which costs ~3 digits); x to 2e-8 of its sd (~1 m here), because the
+    predicted ~2e7 m ranges themselves carry ~4e-9 m of round-off (their ulp), which every
+    innovation inherits. Other states move only through their correlations.
+    With a 60 m blunder the test rejects it and x, P are what the other 8 updates make them."""
+    rng = np.random.default_rng(31)
+    rot = np.linalg.qr(rng.normal(size=(3, 3)))[0]
+    base = np.array([-2.69e6, -4.29e6, 3.86e6])
+    sv = base + rng.normal(size=(9, 3)) * 1.5e7
+    rho_lead = np.linalg.norm(sv - base, axis=1)
+    n = 12  # [p (3), clk, other states (8)]
+    x = np.concatenate([[8.0, -3.0, 0.5, 40.0], rng.normal(size=8)])
+    P = _spd(rng, n, 0.7)
+    P[3, :] *= 30.0  # clock much less known than the rest, as after a prediction
+    P[:, 3] *= 30.0
+    f = _sd_pr_model(rot, base, sv, rho_lead)
+    truth = x + rng.normal(size=n) * np.sqrt(np.diag(P)) * 0.5
+    z = np.array([f(truth, o) for o in range(9)]) + rng.normal(size=9) * 0.5
+    if with_rejection:
+        z[4] += 60.0
+    r_var = 2.0 * 0.5**2
+    xe, pe = x.copy(), P.copy()
+    for o in range(9):
+        los = sv[o] - (base + xe[0:3] @ rot)
+        hrow = np.zeros(n)
+        hrow[0:3] = -rot @ (los / np.linalg.norm(los))
+        hrow[3] = 1.0
+        nu = z[o] - f(xe, o)
+        s = float(hrow @ pe @ hrow) + r_var
+        if abs(nu) > GATE * math.sqrt(s):
+            continue
+        xe, pe, _ = _textbook(xe, pe, hrow, nu, r_var)
+    _, _, st = kernels.sd_pseudorange_batch(x, P, base, rot, 0, 3, sv, rho_lead, z, np.arange(9),
+                                            np.zeros(9, dtype=bool), r_var, GATE)
+    assert (st == kernels.REJECTED).sum() == (1 if with_rejection else 0)
+    if with_rejection:
+        assert st[4] == kernels.REJECTED
+    sd = np.sqrt(np.diag(pe))
+    np.testing.assert_array_less(np.abs(x - xe), 2e-8 * sd)
+    np.testing.assert_array_less(np.abs(P - pe), 1e-9 * np.outer(sd, sd))
+    assert np.array_equal(P, P.T)
+
+
+def _textbook_snooping(h, r, sigma, k):
+    """Baarda data snooping written out (MacGougan (2009) section 3.5.1 screen): while the
+    redundancy is >= 2, w_i = |e_i| / (sigma sqrt(Q_e,ii)) with e = (I - H (H^T H)^-1 H^T) r;
+    flag the largest w > k."""
+    m, npar = h.shape
+    flagged = np.zeros(m, dtype=bool)
+    while (~flagged).sum() - npar >= 2:
+        use = np.flatnonzero(~flagged)
+        hu = h[use]
+        proj = hu @ np.linalg.inv(hu.T @ hu) @ hu.T
+        e = (np.eye(len(use)) - proj) @ r[use]
+        w = np.abs(e) / (sigma * np.sqrt(np.maximum(1.0 - np.diag(proj), 1e-12)))
+        j = int(np.argmax(w))
+        if w[j] <= k:
+            return flagged, True
+        flagged[use[j]] = True
+    return flagged, False
+
+
+def _los_design(rng, m):
+    """(m, 4) pseudorange design rows [-u_enu, 1], satellites above 10 deg elevation."""
+    az = rng.uniform(0, 2 * np.pi, m)
+    el = rng.uniform(np.radians(10), np.radians(85), m)
+    u = np.stack([np.cos(el) * np.sin(az), np.cos(el) * np.cos(az), np.sin(el)], axis=1)
+    return np.hstack([-u, np.ones((m, 1))])
+
+
+@pytest.mark.parametrize("n_blunders", [0, 1, 2, 3])
+def test_screen_blunders_flags_what_data_snooping_flags(n_blunders):
+    """200 seeded epochs of 7-11 satellites, sigma = 7 m residuals plus 0-3 blunders of
+    15-40 sigma: the compiled screen flags exactly what the written-out w-test flags (same
+    isolated status). Physics: a single blunder of >= 15 sigma is found; without blunders
+    or with one, clean measurements are flagged at about alpha = 0.001 per test (<= 1 %
+    allowed). With 2-3 blunders at 7-11 satellites, data snooping also flags clean ones
+    (swamping: a blunder's residual leaks into the others through Q_e) and can miss one
+    (masking), so only the equality is checked there."""
+    rng = np.random.default_rng(100 + n_blunders)
+    sigma, k = 7.0, 3.2905
+    found = clean_flags = total_clean = 0
+    for _ in range(200):
+        m = int(rng.integers(7, 12))
+        h = _los_design(rng, m)
+        r = rng.normal(size=m) * sigma
+        bad = rng.choice(m, n_blunders, replace=False)
+        r[bad] += rng.choice([-1, 1], n_blunders) * rng.uniform(15, 40, n_blunders) * sigma
+        got, iso = kernels.screen_blunders(h, r, sigma, k)
+        exp, iso_exp = _textbook_snooping(h, r, sigma, k)
+        np.testing.assert_array_equal(got, exp)
+        assert iso == iso_exp
+        found += int(got[bad].all())
+        clean_flags += int(got.sum() - got[bad].sum())
+        total_clean += m - n_blunders
+    if n_blunders == 1:
+        assert found >= 190
+    if n_blunders <= 1:
+        assert clean_flags <= max(3, 0.01 * total_clean)
+
+
+def test_screen_blunders_singular_geometry_is_not_isolated():
+    """Coplanar satellites at one elevation: H^T H is singular (clock and up are not
+    separable): the screen stops without flagging and reports not isolated."""
+    az = np.linspace(0, 2 * np.pi, 8, endpoint=False)
+    el = np.radians(30.0)
+    h = np.stack([-np.cos(el) * np.sin(az), -np.cos(el) * np.cos(az), -np.full(8, np.sin(el)), np.ones(8)], axis=1)
+    flagged, iso = kernels.screen_blunders(h, np.zeros(8), 7.0, 3.29)
+    assert not flagged.any() and not iso
+
+
+def test_first_unflagged_order_moves_the_first_clean_measurement_first():
+    """Elevation order 0..m-1; a blunder on the highest satellite: the second one goes first,
+    the rest keep their order, nothing is excluded (one flag); two blunders: both excluded."""
+    rng = np.random.default_rng(5)
+    val = _los_design(rng, 9)
+    z = rng.normal(size=9) * 7.0
+    h_pred = np.zeros(9)
+    z1 = z.copy()
+    z1[0] += 300.0
+    order, excluded, iso, n_flag = kernels.first_unflagged_order(h_pred, val, z1, 7.0, 3.2905, 4)
+    assert n_flag == 1 and iso and not excluded.any()
+    np.testing.assert_array_equal(order, [1, 0, 2, 3, 4, 5, 6, 7, 8])
+    z2 = z1.copy()
+    z2[1] -= 300.0
+    order, excluded, iso, n_flag = kernels.first_unflagged_order(h_pred, val, z2, 7.0, 3.2905, 4)
+    assert n_flag == 2 and excluded[0] and excluded[1] and excluded.sum() == 2
+    np.testing.assert_array_equal(order, [2, 0, 1, 3, 4, 5, 6, 7, 8])
+    # fewer than cols + 2 measurements: no screen, plain order, not isolated
+    order, excluded, iso, n_flag = kernels.first_unflagged_order(h_pred[:5], val[:5], z1[:5], 7.0, 3.2905, 4)
+    assert n_flag == 0 and not iso and list(order) == [0, 1, 2, 3, 4]
+
+
+def test_clock_jump_test_finds_a_common_step():
+    """A 1 ms receiver clock jump (299 792.458 m) on every SD pseudorange: detected, with the
+    median innovation as the step; ordinary noise and a single blunder are not a jump."""
+    rng = np.random.default_rng(8)
+    val = _los_design(rng, 8)
+    P = np.diag([1.0, 1.0, 2.0, 4.0])
+    idx = np.arange(4)
+    h_pred = np.zeros(8)
+    noise = rng.normal(size=8) * 7.0
+    jump, med = kernels.clock_jump_test(P, idx, h_pred, val, noise + 299792.458, 50.0, 3.2905)
+    assert jump and med == pytest.approx(299792.458 + np.median(noise))
+    assert not kernels.clock_jump_test(P, idx, h_pred, val, noise, 50.0, 3.2905)[0]
+    one = noise.copy()
+    one[3] += 1e4
+    assert not kernels.clock_jump_test(P, idx, h_pred, val, one, 50.0, 3.2905)[0]
+
+
+def test_pair_satellites_is_intersect_finite_and_elevation_order():
+    """Common PRNs of vehicle and lead (first occurrence), both pseudoranges finite (the
+    others counted), sorted by decreasing elevation from the base (up = 3rd ENU axis)."""
+    rot = np.eye(3)  # ENU = ECEF axes here: elevation = atan2(z, hypot(x, y)) of sv - base
+    base = np.zeros(3)
+    prn_lead = np.array([3, 7, 12, 19, 25, 30], dtype=np.int64)
+    el_deg = np.array([20.0, 70.0, 45.0, 10.0, 85.0, 50.0])
+    sv_lead = np.stack([np.cos(np.radians(el_deg)), np.zeros(6), np.sin(np.radians(el_deg))], axis=1) * 2e7
+    pr_lead = np.array([1.0, 2.0, 3.0, np.nan, 5.0, 6.0])
+    prn_v = np.array([30, 25, 19, 12, 4, 3], dtype=np.int64)
+    pr_v = np.array([1.0, np.inf, 1.0, 1.0, 1.0, 1.0])
+    iv, il, el, n_bad = kernels.pair_satellites(prn_v, prn_lead, pr_v, pr_lead, sv_lead, base, rot)
+    # common: 3, 12, 19 (lead NaN), 25 (vehicle inf), 30 -> kept 30 (50 deg), 12 (45), 3 (20)
+    assert n_bad == 2
+    np.testing.assert_array_equal(prn_v[iv], [30, 12, 3])
+    np.testing.assert_array_equal(prn_lead[il], [30, 12, 3])
+    np.testing.assert_allclose(np.degrees(el), [50.0, 45.0, 20.0], atol=1e-9)
+
+
+def test_predict_with_the_process_model_f_is_f_p_ft_plus_q():
+    """The process model's own vehicle-block F (position integrates velocity, clock integrates
+    drift: the in-place fast path) and an [azimuth, rate] pair: dense F P F^T + Q (round-off)."""
+    from v2v.estimation.process import ProcessNoiseConfig, azimuth_block, vehicle_block
+
+    cfg = ProcessNoiseConfig()
+    fb, qb = vehicle_block(cfg, 0.1)
+    fa, qa = azimuth_block(cfg, 0.1)
+    rng = np.random.default_rng(10)
+    n = 21  # [other, vehicle (8), vehicle (8), azimuth, other, rate, other]
+    P = _spd(rng, n, 1.0)
+    x = rng.normal(size=n)
+    f = np.eye(n)
+    q = np.zeros((n, n))
+    for s in (1, 9):
+        f[s:s + 8, s:s + 8] = fb
+        q[s:s + 8, s:s + 8] = qb
+    ix = np.ix_([17, 19], [17, 19])
+    f[ix] = fa
+    q[ix] = qa
+    x_exp, p_exp = f @ x, f @ P @ f.T + q
+    kernels.predict_vehicle_blocks(x, P, 1, 2, np.ascontiguousarray(fb), np.ascontiguousarray(qb))
+    kernels.predict_pairs(x, P, np.array([17]), np.array([19]), np.ascontiguousarray(fa), np.ascontiguousarray(qa))
+    kernels.symmetrize(P)
+    np.testing.assert_allclose(x, x_exp, rtol=1e-13, atol=1e-13)
+    np.testing.assert_allclose(P, p_exp, rtol=1e-12, atol=1e-12)
+    assert np.array_equal(P, P.T)

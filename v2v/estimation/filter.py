@@ -84,7 +84,7 @@ from dataclasses import dataclass, field
 
 import numpy as np
 from numpy.typing import NDArray
-from scipy.stats import chi2, norm
+from scipy import special
 
 from v2v.errors import UserError
 from v2v.estimation import kernels, models
@@ -216,7 +216,8 @@ class FilterConfig:
     @property
     def gate_k(self) -> float:
         """Two-sided normal critical value: alpha = 0.001 -> 3.2905."""
-        return float(norm.isf(self.significance / 2.0))
+        # = scipy.stats.norm.isf(alpha / 2) (same ndtri, bit for bit) without importing scipy.stats
+        return float(-special.ndtri(self.significance / 2.0))
 
 
 @dataclass(frozen=True, slots=True)
@@ -265,26 +266,11 @@ def screen_blunders_status(h: F64, r: F64, sigma: float, k: float) -> tuple[NDAr
     """:func:`screen_blunders` plus whether it isolated every fault: True when it stopped
     because all remaining ``|w| <= k``; False when it stopped at redundancy < 2 or at a
     singular geometry (a fault may remain), or never had redundancy >= 2."""
-    m, npar = h.shape
-    flagged = np.zeros(m, dtype=bool)
-    while (~flagged).sum() - npar >= 2:
-        use = np.flatnonzero(~flagged)
-        hu, ru = h[use], r[use]
-        n_mat = hu.T @ hu
-        sv = np.linalg.svd(n_mat, compute_uv=False)
-        with np.errstate(divide="ignore", invalid="ignore"):
-            cond = sv[0] / sv[-1]  # = np.linalg.cond(n_mat) (0/0 -> NaN counts as singular, as there)
-        if not cond <= 1e12:
-            return flagged, False
-        sol = np.linalg.solve(n_mat, hu.T)  # N^-1 H^T: one factorization for dx and Q_e
-        e = ru - hu @ (sol @ ru)
-        qe = 1.0 - np.einsum("ij,ji->i", hu, sol)
-        w = np.abs(e) / (sigma * np.sqrt(np.maximum(qe, 1e-12)))
-        j = int(np.argmax(w))
-        if w[j] <= k:
-            return flagged, True
-        flagged[use[j]] = True
-    return flagged, False
+    # compiled (v2v.estimation.kernels.screen_blunders): per iteration N = H^T H, its
+    # condition number (SVD), N^-1 H^T, the residuals and w of the remaining measurements
+    flagged, isolated = kernels.screen_blunders(np.ascontiguousarray(h, dtype=np.float64),
+                                                np.ascontiguousarray(r, dtype=np.float64), float(sigma), float(k))
+    return flagged, bool(isolated)
 
 
 class ClusterFilterBase(ABC):
@@ -412,20 +398,21 @@ class ClusterFilterBase(ABC):
             if self._vehicle_ready[v] and self._position_sigma_m(v) > self.config.divergence_position_sigma_m:
                 self._reset_vehicle(v)
         per_vehicle: dict[str, tuple[GnssEpoch, NDArray, NDArray, F64]] = {}
+        if lead_ep is not None:
+            lead_prn = np.asarray(lead_ep.prn, dtype=np.int64)
+            lead_pr = np.asarray(lead_ep.pseudorange_m, dtype=np.float64)
+            lead_sv = np.ascontiguousarray(lead_ep.sv_pos_ecef_m, dtype=np.float64).reshape(-1, 3)
         for v in lay.vehicles:
             ep = epochs.get(v)
             if ep is None or lead_ep is None:
                 continue
-            prns, iv, il = np.intersect1d(ep.prn, lead_ep.prn, return_indices=True)
-            ok = np.isfinite(ep.pseudorange_m[iv]) & np.isfinite(lead_ep.pseudorange_m[il])
-            n_bad = int((~ok).sum())
+            # common satellites (np.intersect1d order), finite pseudoranges, highest elevation first
+            iv, il, el, n_bad = kernels.pair_satellites(
+                np.asarray(ep.prn, dtype=np.int64), lead_prn, np.asarray(ep.pseudorange_m, dtype=np.float64),
+                lead_pr, lead_sv, geo.base_ecef_m, geo.rot_ecef_to_enu)
             for _ in range(n_bad):
                 self._count(f"nonfinite_{KIND_SD_PR}")
-            iv, il = iv[ok], il[ok]
-            el = _elevations(geo, lead_ep.sv_pos_ecef_m[il])
-            order = np.argsort(-el, kind="stable")
-            iv, il = iv[order], il[order]
-            per_vehicle[v] = (ep, iv, il, el[order])
+            per_vehicle[v] = (ep, iv, il, el)
             if not self._vehicle_ready[v]:
                 if self._initialize_vehicle(v, geo, ep, lead_ep, iv, il):
                     just_initialized.add(v)
@@ -649,22 +636,12 @@ class ClusterFilterBase(ABC):
         more than one was flagged (all left out); ``isolated`` is the screen's
         :func:`screen_blunders_status` (False when it could not run).
         """
-        m = len(h_pred)
-        order = np.arange(m)
-        excluded = np.zeros(m, dtype=bool)
-        if m < cols + 2:
-            return order, excluded, False
-        h = val[:, -cols:]
-        res = z - h_pred
-        flagged, isolated = screen_blunders_status(h, res, sigma, self._k)
-        if flagged.any():
-            for _ in range(int(flagged.sum())):
-                self._count("screened_first_update")
-            first = int(np.flatnonzero(~flagged)[0]) if (~flagged).any() else 0
-            order = np.concatenate([[first], np.delete(order, first)])
-            if flagged.sum() > 1:
-                excluded = flagged
-        return order, excluded, isolated
+        order, excluded, isolated, n_flagged = kernels.first_unflagged_order(
+            np.ascontiguousarray(h_pred, dtype=np.float64), np.ascontiguousarray(val, dtype=np.float64),
+            np.ascontiguousarray(z, dtype=np.float64), float(sigma), self._k, int(cols))
+        if n_flagged:
+            self.counters["screened_first_update"] = self.counters.get("screened_first_update", 0) + int(n_flagged)
+        return order, excluded, bool(isolated)
 
     def _excluded(self, kind: str, vehicles: tuple[str, ...], row: Row, z: float, r_var: float,
                   prn: int) -> UpdateInfo | None:
@@ -684,19 +661,11 @@ class ClusterFilterBase(ABC):
         """Common-mode test of one vehicle's SD pseudorange innovations (module docstring);
         on a detection re-initialize only its SD clock state at ``clk + median(nu)``.
         ``h_pred`` (m,), ``val`` (m, k): the rows, all on the state indices ``idx``."""
-        n = len(h_pred)
-        if n < 3:
+        jump, m = kernels.clock_jump_test(self._get_P(), np.ascontiguousarray(idx, dtype=np.int64), h_pred, val,
+                                          np.ascontiguousarray(z, dtype=np.float64), float(r_var), self._k)
+        if not jump:
             return False
-        pb = self._get_P()[np.ix_(idx, idx)]
-        nu = z - h_pred
-        s = np.einsum("ij,jk,ik->i", val, pb, val) + r_var
-        gate = self._k * np.sqrt(s)
-        fail = np.abs(nu) > gate
-        if 2 * int(fail.sum()) <= n or not (np.all(nu[fail] > 0.0) or np.all(nu[fail] < 0.0)):
-            return False
-        m = float(np.median(nu))
-        if 2 * int((np.abs(nu - m) <= gate).sum()) <= n:
-            return False
+        m = float(m)
         i = self.layout.clock(v)
         clk = float(self._get_x()[i])
         self._set_block(slice(i, i + 1), np.array([clk + m]), np.array([[self.config.clock_reset_sigma_m**2]]))
@@ -716,7 +685,8 @@ class ClusterFilterBase(ABC):
     def window_nis_band(self, v: str, prob: float = 0.999) -> tuple[float, float]:
         """Two-sided ``prob`` chi-square band of :meth:`window_mean_nis` under H0."""
         n = len(self._nis_window.get(v, ())) or 1
-        lo, hi = chi2.ppf([(1.0 - prob) / 2.0, (1.0 + prob) / 2.0], n) / n
+        # chi-square quantiles 2 gammaincinv(n/2, p) (= scipy.stats.chi2.ppf, without its import cost)
+        lo, hi = 2.0 * special.gammaincinv(n / 2.0, np.array([(1.0 - prob) / 2.0, (1.0 + prob) / 2.0])) / n
         return float(lo), float(hi)
 
     def _window_diverged(self, v: str) -> bool:
@@ -750,18 +720,9 @@ class ClusterFilterBase(ABC):
             h_pred, val = rows.all(self._get_x())
         order, excluded, isolated = self._first_unflagged_order(h_pred, val, z, np.sqrt(r_var), 4)
         self.integrity_available[v] = isolated
-        out = []
-        zl = z.tolist()
-        prns = ep.prn[iv].tolist()
-        for o in order.tolist():
-            row = rows.row(self._get_x(), o)
-            if excluded[o]:
-                info = self._excluded(KIND_SD_PR, (v,), row, zl[o], r_var, prns[o])
-            else:
-                info = self._scalar(KIND_SD_PR, (v,), row, zl[o], r_var, prn=prns[o])
-            if info is not None:
-                out.append(info)
-                self._record_test(v, info)
+        out = self._pseudorange_sequence(v, rows, z, order, excluded, ep.prn[iv], r_var)
+        for info in out:
+            self._record_test(v, info)
         return out
 
     def _sd_dopplers(self, v: str, geo: GnssGeometry, ep: GnssEpoch, lead_ep: GnssEpoch,
@@ -869,11 +830,10 @@ class ClusterFilterBase(ABC):
         pc = np.r_[np.arange(lay.position(v).start, lay.position(v).stop), lay.clock(v)]
         use = np.ones(len(iv), dtype=bool)
         h = np.zeros((0, 4))
+        pr_rows = models.SdPseudorangeRows(lay, geo, v, ep.sv_pos_ecef_m[iv], lead_ep.sv_pos_ecef_m[il])
         for it in range(6):
-            rows = [models.sd_pseudorange(xt, lay, geo, v, ep.sv_pos_ecef_m[i], lead_ep.sv_pos_ecef_m[j])
-                    for i, j in zip(iv, il, strict=True)]
-            h = np.array([r.val for r in rows])
-            res = z - np.array([r.h for r in rows])
+            h_pred, h = pr_rows.all(xt)  # every models.sd_pseudorange row at xt, one compiled call
+            res = z - h_pred
             if it == 2:  # screen once the linearization point is good
                 use = ~screen_blunders(h, res, sig_pr, self._k)
             n_mat = h[use].T @ h[use]
@@ -894,11 +854,12 @@ class ClusterFilterBase(ABC):
         if self.config.use_doppler and okd.sum() >= 4:
             sig_d = np.sqrt(self.config.noise.sd_doppler_var_m2ps2)
             zd = (ep.doppler_mps[iv] - lead_ep.doppler_mps[il])[okd]
-            rows = [models.sd_doppler(xt, lay, geo, v, ep.sv_pos_ecef_m[i], ep.sv_vel_ecef_mps[i],
-                                      lead_ep.sv_pos_ecef_m[j], lead_ep.sv_vel_ecef_mps[j])
-                    for i, j in zip(iv[okd], il[okd], strict=True)]
-            hd = np.array([_compact(r, 4) for r in rows])
-            rd = zd - np.array([r.h for r in rows])
+            ivd, ild = iv[okd], il[okd]
+            d_rows = models.SdDopplerRows(lay, geo, v, ep.sv_pos_ecef_m[ivd], ep.sv_vel_ecef_mps[ivd],
+                                          lead_ep.sv_pos_ecef_m[ild], lead_ep.sv_vel_ecef_mps[ild])
+            hd_pred, hd_full = d_rows.all(xt)  # models.sd_doppler rows at xt
+            hd = np.ascontiguousarray(hd_full[:, -4:])  # the (velocity, drift) columns
+            rd = zd - hd_pred
             used = ~screen_blunders(hd, rd, sig_d, self._k)
             nd = hd[used].T @ hd[used]
             if used.sum() >= 4 and np.linalg.cond(nd) < 1e10:
@@ -942,8 +903,13 @@ class ClusterFilterBase(ABC):
         """Indices of the measurements that pass :meth:`_pair_usable` (which counts the others)."""
         lay = self.layout
         known = {lay.lead, *lay.vehicles}
+        ready = {lay.lead, *(v for v in lay.vehicles if self._vehicle_ready.get(v, False))}
         zl = np.asarray(z, dtype=float).tolist()
-        return [k for k in range(len(zl)) if self._pair_usable(kind, a[k], b[k], zl[k], known)]
+        isfinite = math.isfinite
+        # fast path: finite, both known and initialized, a != b; the rest through _pair_usable (counts why)
+        return [k for k, zk in enumerate(zl)
+                if (isfinite(zk) and a[k] in ready and b[k] in ready and a[k] != b[k])
+                or self._pair_usable(kind, a[k], b[k], zk, known)]
 
     def _uwb_sequence(self, a_list: list[str], b_list: list[str], z: F64) -> list[UpdateInfo]:
         """Engine hook (default: one Python scalar update per range): sequential updates of
@@ -1187,11 +1153,6 @@ def _bearing_hessian(d: F64) -> F64:
     return h
 
 
-def _compact(row: Row, cols: int) -> F64:
-    """Last ``cols`` Jacobian entries of a single-vehicle row (velocity + drift of a Doppler row)."""
-    return row.val[-cols:]
-
-
 def _elevations(geo: GnssGeometry, sv_ecef_m: F64) -> F64:
     """Satellite elevations (rad) seen from the lead base."""
     d = (np.asarray(sv_ecef_m, dtype=float) - geo.base_ecef_m) @ geo.rot_ecef_to_enu.T
@@ -1216,7 +1177,15 @@ class ClusterEkf(ClusterFilterBase):
         self._P = np.array(P, dtype=float)
         self._veh0, self._nveh = self.layout.vehicle_blocks_contiguous()
         self._rw_index = random_walk_indices(self.layout)
+        # random-walk diagonal: state indices and PSD (= random_walk_variances(cfg, kind, 1 s))
+        rw = [(i, q) for sl, kind in self._rw_index
+              for i, q in zip(range(sl.start, sl.stop), random_walk_variances(self.config.process, kind, 1.0).tolist(),
+                              strict=True)]
+        self._rw_diag = np.array([i for i, _ in rw], dtype=np.int64)
+        self._rw_psd = np.array([q for _, q in rw], dtype=np.float64)
         self._az_pairs = np.array(azimuth_pairs(self.layout), dtype=np.int64).reshape(-1, 2)
+        self._az_ia = np.ascontiguousarray(self._az_pairs[:, 0])
+        self._az_ir = np.ascontiguousarray(self._az_pairs[:, 1])
         lay = self.layout
         # kernel indices: position-slice start per vehicle (-1 = lead at the origin)
         self._pos0 = {v: lay.position(v).start for v in lay.vehicles}
@@ -1233,25 +1202,11 @@ class ClusterEkf(ClusterFilterBase):
         fb, qb = vehicle_block(self.config.process, dt_s)
         if self._nveh:  # F P F^T + Q over the contiguous vehicle blocks, compiled, in place
             kernels.predict_vehicle_blocks(self._x, self._P, self._veh0, self._nveh, fb, qb)
-        for s, kind in self._rw_index:
-            q = random_walk_variances(self.config.process, kind, dt_s)
-            self._P[s, s] += np.diag(q)
+        if len(self._rw_diag):  # random walks: q dt on their diagonal (random_walk_variances)
+            self._P[self._rw_diag, self._rw_diag] += self._rw_psd * dt_s
         if len(self._az_pairs):
             fa, qa = azimuth_block(self.config.process, dt_s)
-            ia, ir = self._az_pairs[:, 0], self._az_pairs[:, 1]
-            xa, xr = self._x[ia].copy(), self._x[ir].copy()
-            self._x[ia] = fa[0, 0] * xa + fa[0, 1] * xr
-            self._x[ir] = fa[1, 0] * xa + fa[1, 1] * xr
-            ra, rr = self._P[ia, :].copy(), self._P[ir, :].copy()
-            self._P[ia, :] = fa[0, 0] * ra + fa[0, 1] * rr
-            self._P[ir, :] = fa[1, 0] * ra + fa[1, 1] * rr
-            ca, cr = self._P[:, ia].copy(), self._P[:, ir].copy()
-            self._P[:, ia] = ca * fa[0, 0] + cr * fa[0, 1]
-            self._P[:, ir] = ca * fa[1, 0] + cr * fa[1, 1]
-            self._P[ia, ia] += qa[0, 0]
-            self._P[ia, ir] += qa[0, 1]
-            self._P[ir, ia] += qa[1, 0]
-            self._P[ir, ir] += qa[1, 1]
+            kernels.predict_pairs(self._x, self._P, self._az_ia, self._az_ir, fa, qa)
         kernels.symmetrize(self._P)
 
     def _apply(self, row: Row, z: float, r_var: float, wrap: bool, test: bool) -> tuple[float, float, bool]:
@@ -1268,6 +1223,8 @@ class ClusterEkf(ClusterFilterBase):
     # ----------------------------------------------------------------- compiled batches
     def _nl_fractions(self, a_list: list[str], b_list: list[str]) -> F64:
         """:meth:`_nonlinear_fraction` of every measurement of a batch."""
+        if not any(self.gnss_weak.values()):  # no weak vehicle: the configured fraction for all
+            return np.full(len(a_list), self.config.nonlinear_fraction)
         return np.fromiter((self._nonlinear_fraction(a, b) for a, b in zip(a_list, b_list, strict=True)),
                            dtype=float, count=len(a_list))
 
@@ -1275,12 +1232,14 @@ class ClusterEkf(ClusterFilterBase):
         """All usable ranges in one :func:`v2v.estimation.kernels.uwb_batch` call."""
         lay, cfg = self.layout, self.config
         m = len(a_list)
-        sa = np.fromiter((self._pos0[a] for a in a_list), dtype=np.int64, count=m)
-        sb = np.fromiter((self._pos0[b] for b in b_list), dtype=np.int64, count=m)
+        pos0 = self._pos0
+        sa = np.array([pos0[a] for a in a_list], dtype=np.int64)
+        sb = np.array([pos0[b] for b in b_list], dtype=np.int64)
         ib = np.full(m, -1, dtype=np.int64)
         isc = np.full(m, -1, dtype=np.int64)
-        pairs = [uwb_pair_key(a, b) for a, b in zip(a_list, b_list, strict=True)]
+        pairs: list[tuple[str, str]] = []  # only constraint records name the pair
         if cfg.use_uwb_bias_scale and lay.uwb_pairs:
+            pairs = [uwb_pair_key(a, b) for a, b in zip(a_list, b_list, strict=True)]
             for k, pair in enumerate(pairs):
                 if lay.has(UWB, pair):
                     ib[k], isc[k] = lay.uwb_bias(pair), lay.uwb_scale(pair)
@@ -1351,6 +1310,64 @@ class ClusterEkf(ClusterFilterBase):
             info = self._record(KIND_SD_PR, (v,), nuk, sk, stk, prn_l[o], "")
             if info is not None:
                 out.append(info)
+        return out
+
+    def _sd_pseudoranges(self, v: str, geo: GnssGeometry, ep: GnssEpoch, lead_ep: GnssEpoch,
+                         iv: NDArray, il: NDArray) -> list[UpdateInfo]:
+        """:meth:`ClusterFilterBase._sd_pseudoranges` in one compiled call
+        (:func:`v2v.estimation.kernels.sd_pseudorange_epoch`: the same row, clock-jump, screen
+        and batch kernels in the same order); counters, NIS window and records as there."""
+        cfg = self.config
+        rows = models.SdPseudorangeRows(self.layout, geo, v, ep.sv_pos_ecef_m[iv], lead_ep.sv_pos_ecef_m[il])
+        z = np.ascontiguousarray(ep.pseudorange_m[iv] - lead_ep.pseudorange_m[il], dtype=np.float64)
+        r_var = cfg.noise.sd_pseudorange_var_m2
+        jump, order, isolated, n_flagged, nu, s, st = kernels.sd_pseudorange_epoch(
+            self._x, self._P, *rows.kernel_args(), z, r_var, self._k, cfg.clock_jump_detection,
+            cfg.clock_reset_sigma_m**2)
+        if jump:
+            self._nis_window.pop(v, None)
+            self._count("clock_jump_detected")
+        if n_flagged:
+            self.counters["screened_first_update"] = self.counters.get("screened_first_update", 0) + int(n_flagged)
+        self.integrity_available[v] = bool(isolated)
+        out = self._records(KIND_SD_PR, (v,), order, nu, s, st, ep.prn[iv].tolist())
+        for info in out:
+            self._record_test(v, info)
+        return out
+
+    def _sd_dopplers(self, v: str, geo: GnssGeometry, ep: GnssEpoch, lead_ep: GnssEpoch,
+                     iv: NDArray, il: NDArray) -> list[UpdateInfo]:
+        """:meth:`ClusterFilterBase._sd_dopplers` in one compiled call
+        (:func:`v2v.estimation.kernels.sd_doppler_epoch`)."""
+        zd = ep.doppler_mps[iv] - lead_ep.doppler_mps[il]
+        ok = np.isfinite(zd)  # = both Dopplers finite (a difference of finite values is finite)
+        if not ok.all():
+            ok = np.isfinite(ep.doppler_mps[iv]) & np.isfinite(lead_ep.doppler_mps[il])
+            for _ in range(int((~ok).sum())):
+                self._count(f"nonfinite_{KIND_SD_DOPPLER}")
+            iv, il, zd = iv[ok], il[ok], zd[ok]
+        rows = models.SdDopplerRows(self.layout, geo, v, ep.sv_pos_ecef_m[iv], ep.sv_vel_ecef_mps[iv],
+                                    lead_ep.sv_pos_ecef_m[il], lead_ep.sv_vel_ecef_mps[il])
+        order, n_flagged, nu, s, st = kernels.sd_doppler_epoch(
+            self._x, self._P, *rows.kernel_args(), np.ascontiguousarray(zd, dtype=np.float64),
+            self.config.noise.sd_doppler_var_m2ps2, self._k)
+        if n_flagged:
+            self.counters["screened_first_update"] = self.counters.get("screened_first_update", 0) + int(n_flagged)
+        return self._records(KIND_SD_DOPPLER, (v,), order, nu, s, st, ep.prn[iv].tolist())
+
+    def _records(self, kind: str, vehicles: tuple[str, ...], order: NDArray[np.int64], nu: F64, s: F64,
+                 st: NDArray[np.int64], prns: list[int]) -> list[UpdateInfo]:
+        """The records of one vehicle's GNSS batch (``prns`` indexed like the rows, the
+        kernel outputs like ``order``): accepted ones built directly, the others by :meth:`_record`."""
+        out = []
+        accepted = kernels.ACCEPTED
+        for o, nuk, sk, stk in zip(order.tolist(), nu.tolist(), s.tolist(), st.tolist(), strict=True):
+            if stk == accepted:
+                out.append(UpdateInfo(kind, vehicles, nuk, sk, nuk * nuk / sk, True, prns[o]))
+            else:
+                info = self._record(kind, vehicles, nuk, sk, stk, prns[o], "")
+                if info is not None:
+                    out.append(info)
         return out
 
     def _record(self, kind: str, vehicles: tuple[str, ...], nu: float, s: float, status: int, prn: int,

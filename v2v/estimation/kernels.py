@@ -166,6 +166,7 @@ def _set_block1(x, P, i, mean, var):
 # exactly symmetric.
 
 LAZY_RANK = 32
+_TILE = 32  # square tiles (8 KB of float64) for the passes that read or write P column-wise
 
 
 @njit(**_JIT)
@@ -176,12 +177,15 @@ def lazy_flush(P, Q, kq):
     qk = Q[:kq]
     g = np.dot(qk.T, qk)
     n = P.shape[0]
-    for i in range(n):
-        for j in range(i, n):
-            v = g[i, j]
-            P[i, j] -= v
-            if j != i:
-                P[j, i] -= v
+    t = _TILE  # tile by tile: the mirrored writes P[j, i] stay in cache (same element operations)
+    for bi in range(0, n, t):
+        for bj in range(bi, n, t):
+            for i in range(bi, min(bi + t, n)):
+                for j in range(max(bj, i), min(bj + t, n)):
+                    v = g[i, j]
+                    P[i, j] -= v
+                    if j != i:
+                        P[j, i] -= v
     return 0
 
 
@@ -562,6 +566,99 @@ def sd_pseudorange_batch(x, P, base, rot, ps, iclk, sv, rho_lead, z, order, excl
 
 
 @njit(**_JIT)
+def _is_gm_vehicle_f(fb):
+    """Is ``fb`` the process model's vehicle-block F: [p(3), v(3), clk, drift] with
+    ``p' = p + f v``, ``v' = e v``, ``clk' = clk + f_d drift``, ``drift' = e_d drift``
+    (unit diagonal on p and clk, nothing else)?"""
+    for i in range(8):
+        for j in range(8):
+            allowed = i == j or (i < 3 and j == i + 3) or (i == 6 and j == 7)
+            if not allowed and fb[i, j] != 0.0:
+                return False
+    return fb[0, 0] == 1.0 and fb[1, 1] == 1.0 and fb[2, 2] == 1.0 and fb[6, 6] == 1.0
+
+
+@njit(**_JIT)
+def _predict_gm_vehicle_blocks(x, P, s0, m, fb, qb):
+    """:func:`predict_vehicle_blocks` for the process model's F (:func:`_is_gm_vehicle_f`):
+    the same products in the same order, applied in place as row / column axpy and scale
+    operations (level += f * rate before rate *= e), with no temporaries."""
+    n = x.shape[0]
+    for a in range(m):
+        s = s0 + 8 * a
+        for i in range(3):
+            x[s + i] = x[s + i] + fb[i, i + 3] * x[s + 3 + i]
+            x[s + 3 + i] = fb[i + 3, i + 3] * x[s + 3 + i]
+        x[s + 6] = x[s + 6] + fb[6, 7] * x[s + 7]
+        x[s + 7] = fb[7, 7] * x[s + 7]
+        # rows: P[s:s+8, :] <- fb @ P[s:s+8, :]
+        for i in range(3):
+            f = fb[i, i + 3]
+            e = fb[i + 3, i + 3]
+            rp = P[s + i]
+            rv = P[s + 3 + i]
+            for c in range(n):
+                rp[c] = rp[c] + f * rv[c]
+            for c in range(n):
+                rv[c] = e * rv[c]
+        f = fb[6, 7]
+        e = fb[7, 7]
+        rc = P[s + 6]
+        rd = P[s + 7]
+        for c in range(n):
+            rc[c] = rc[c] + f * rd[c]
+        for c in range(n):
+            rd[c] = e * rd[c]
+    # columns: P[:, s:s+8] <- P[:, s:s+8] @ fb^T
+    for r in range(n):
+        row = P[r]
+        for a in range(m):
+            s = s0 + 8 * a
+            for i in range(3):
+                row[s + i] = row[s + i] + row[s + 3 + i] * fb[i, i + 3]
+                row[s + 3 + i] = row[s + 3 + i] * fb[i + 3, i + 3]
+            row[s + 6] = row[s + 6] + row[s + 7] * fb[6, 7]
+            row[s + 7] = row[s + 7] * fb[7, 7]
+    for a in range(m):
+        s = s0 + 8 * a
+        for i in range(8):
+            for j in range(8):
+                P[s + i, s + j] += qb[i, j]
+
+
+@njit(**_JIT)
+def predict_pairs(x, P, ia, ir, fa, qa):
+    """x <- F x, P <- F P F^T + Q for 2-state [level, rate] pairs (``ia[k]``, ``ir[k]``) that
+    share one 2x2 ``fa``, ``qa`` (estimated azimuth + azimuth rate), identity elsewhere;
+    all rows first, then all columns (in place, not symmetrized)."""
+    n = x.shape[0]
+    for k in range(ia.shape[0]):
+        i, j = ia[k], ir[k]
+        xa, xr = x[i], x[j]
+        x[i] = fa[0, 0] * xa + fa[0, 1] * xr
+        x[j] = fa[1, 0] * xa + fa[1, 1] * xr
+        ra = P[i]
+        rr = P[j]
+        for c in range(n):
+            va, vr = ra[c], rr[c]
+            ra[c] = fa[0, 0] * va + fa[0, 1] * vr
+            rr[c] = fa[1, 0] * va + fa[1, 1] * vr
+    for r in range(n):
+        row = P[r]
+        for k in range(ia.shape[0]):
+            i, j = ia[k], ir[k]
+            ca, cr = row[i], row[j]
+            row[i] = ca * fa[0, 0] + cr * fa[0, 1]
+            row[j] = ca * fa[1, 0] + cr * fa[1, 1]
+    for k in range(ia.shape[0]):
+        i, j = ia[k], ir[k]
+        P[i, i] += qa[0, 0]
+        P[i, j] += qa[0, 1]
+        P[j, i] += qa[1, 0]
+        P[j, j] += qa[1, 1]
+
+
+@njit(**_JIT)
 def predict_vehicle_blocks(x, P, s0, m, fb, qb):
     """x <- F x, P <- F P F^T + Q for ``m`` contiguous 8-state vehicle blocks from ``s0``
     (F = blockdiag(fb), identity elsewhere; Q = blockdiag(qb)), in place (not symmetrized).
@@ -570,6 +667,9 @@ def predict_vehicle_blocks(x, P, s0, m, fb, qb):
     integrates velocity, the clock integrates the drift).
     """
     n = x.shape[0]
+    if _is_gm_vehicle_f(fb):
+        _predict_gm_vehicle_blocks(x, P, s0, m, fb, qb)
+        return
     nz_i = np.empty(64, dtype=np.int64)
     nz_j = np.empty(64, dtype=np.int64)
     nz_f = np.empty(64)
@@ -617,10 +717,349 @@ def predict_vehicle_blocks(x, P, s0, m, fb, qb):
 
 @njit(**_JIT)
 def symmetrize(P):
-    """P <- (P + P^T) / 2 in place."""
+    """P <- (P + P^T) / 2 in place (tile by tile, so that the column accesses stay in cache)."""
     n = P.shape[0]
+    t = _TILE
+    for bi in range(0, n, t):
+        for bj in range(bi, n, t):
+            for i in range(bi, min(bi + t, n)):
+                for j in range(max(bj, i + 1), min(bj + t, n)):
+                    v = 0.5 * (P[i, j] + P[j, i])
+                    P[i, j] = v
+                    P[j, i] = v
+
+
+# ------------------------------------------------------------------ GNSS epoch sequencing
+# The per-vehicle preparation of an epoch's SD pseudoranges / Dopplers (satellite pairing and
+# elevation order, the Baarda w-test screen, the first-update order, the clock-jump test) in
+# compiled form: the same rules as the plain-numpy code they replace in
+# v2v.estimation.filter (ClusterFilterBase.update_gnss, _first_unflagged_order, _clock_jump).
+
+
+@njit(**_JIT)
+def screen_blunders(h, r, sigma, k):
+    """Least-squares data snooping (Baarda w-test), see :func:`v2v.estimation.filter.screen_blunders_status`.
+
+    ``h`` (m, p) design matrix, ``r`` (m,) residuals. While the redundancy is >= 2: solve
+    ``N = H^T H`` (stop, not isolated, if ``cond(N) > 1e12`` or not finite), ``e = r - H N^-1 H^T r``,
+    ``Q_e,ii = 1 - (H N^-1 H^T)_ii``, ``w_i = |e_i| / (sigma sqrt(Q_e,ii))``; stop (isolated) if
+    ``max w <= k``, else flag the largest. Returns ``(flagged (m,), isolated)``.
+    """
+    m, npar = h.shape
+    flagged = np.zeros(m, dtype=np.bool_)
+    use = np.empty(m, dtype=np.int64)
+    n_use = m
+    while n_use - npar >= 2:
+        c = 0
+        for i in range(m):
+            if not flagged[i]:
+                use[c] = i
+                c += 1
+        hu = np.empty((c, npar))
+        ru = np.empty(c)
+        finite = True
+        for a in range(c):
+            ru[a] = r[use[a]]
+            for j in range(npar):
+                hu[a, j] = h[use[a], j]
+        n_mat = np.dot(hu.T, hu)
+        for i in range(npar):
+            for j in range(npar):
+                if not math.isfinite(n_mat[i, j]):
+                    finite = False
+        if not finite:
+            return flagged, False
+        sv = np.linalg.svd(n_mat)[1]
+        cond = sv[0] / sv[npar - 1]
+        if not cond <= 1e12:
+            return flagged, False
+        sol = np.linalg.solve(n_mat, np.ascontiguousarray(hu.T))  # N^-1 H^T
+        dx = np.dot(sol, ru)
+        best = -1.0
+        jbest = 0
+        for a in range(c):
+            fit = 0.0
+            qh = 0.0
+            for j in range(npar):
+                fit += hu[a, j] * dx[j]
+                qh += hu[a, j] * sol[j, a]
+            e = ru[a] - fit
+            qe = 1.0 - qh
+            w = abs(e) / (sigma * math.sqrt(max(qe, 1e-12)))
+            if math.isnan(w):  # np.argmax returns the first NaN; NaN <= k is False -> flagged
+                best = w
+                jbest = a
+                break
+            if w > best:
+                best = w
+                jbest = a
+        if best <= k:
+            return flagged, True
+        flagged[use[jbest]] = True
+        n_use -= 1
+    return flagged, False
+
+
+@njit(**_JIT)
+def first_unflagged_order(h_pred, val, z, sigma, k, cols):
+    """Elevation order with the highest-elevation w-test-clean measurement first
+    (:meth:`v2v.estimation.filter.ClusterFilterBase._first_unflagged_order`).
+
+    Screens ``z - h_pred`` on the last ``cols`` Jacobian columns. Returns ``(order, excluded,
+    isolated, n_flagged)``: ``excluded`` = the flagged ones when more than one was flagged.
+    """
+    m = h_pred.shape[0]
+    order = np.arange(m)
+    excluded = np.zeros(m, dtype=np.bool_)
+    if m < cols + 2:
+        return order, excluded, False, 0
+    nv = val.shape[1]
+    h = np.empty((m, cols))
+    res = np.empty(m)
+    for i in range(m):
+        res[i] = z[i] - h_pred[i]
+        for j in range(cols):
+            h[i, j] = val[i, nv - cols + j]
+    flagged, isolated = screen_blunders(h, res, sigma, k)
+    n_flag = 0
+    first = -1
+    for i in range(m):
+        if flagged[i]:
+            n_flag += 1
+        elif first < 0:
+            first = i
+    if n_flag > 0:
+        if first < 0:
+            first = 0
+        order[0] = first
+        c = 1
+        for i in range(m):
+            if i != first:
+                order[c] = i
+                c += 1
+        if n_flag > 1:
+            excluded[:] = flagged
+    return order, excluded, isolated, n_flag
+
+
+@njit(**_JIT)
+def sd_pseudorange_rows(x, base, rot, ps, iclk, sv, rho_lead, clk):
+    """(h (m,), val (m, 4)) of one vehicle's SD pseudoranges at ``x`` with the clock state
+    replaced by ``clk`` (models.SdPseudorangeRows.all; arithmetic of sd_pseudorange_batch)."""
+    m = sv.shape[0]
+    h = np.empty(m)
+    val = np.empty((m, 4))
+    r_v = np.empty(3)
+    _abs3(base, rot, x, ps, r_v)
+    for o in range(m):
+        d0, d1, d2 = sv[o, 0] - r_v[0], sv[o, 1] - r_v[1], sv[o, 2] - r_v[2]
+        rho = math.sqrt(d0 * d0 + d1 * d1 + d2 * d2)
+        h[o] = (rho - rho_lead[o]) + clk
+        u0, u1, u2 = d0 / rho, d1 / rho, d2 / rho
+        for i in range(3):
+            val[o, i] = -(rot[i, 0] * u0 + rot[i, 1] * u1 + rot[i, 2] * u2)
+        val[o, 3] = 1.0
+    return h, val
+
+
+@njit(**_JIT)
+def clock_jump_test(P, idx, h_pred, val, z, r_var, k):
+    """Common-mode test of one vehicle's SD pseudorange innovations
+    (:meth:`v2v.estimation.filter.ClusterFilterBase._clock_jump`): ``nu_i = z_i - h_i``,
+    ``S_i = h_i P h_i^T + r``; a jump when more than half fail ``|nu| <= k sqrt(S)``, all of
+    those with one sign, and a majority pass ``|nu - median(nu)| <= k sqrt(S)``.
+    Returns ``(jump, median(nu))``."""
+    n = h_pred.shape[0]
+    if n < 3:
+        return False, 0.0
+    nnz = idx.shape[0]
+    nu = np.empty(n)
+    gate = np.empty(n)
+    n_fail = 0
+    n_pos = 0
+    n_neg = 0
     for i in range(n):
-        for j in range(i + 1, n):
-            v = 0.5 * (P[i, j] + P[j, i])
-            P[i, j] = v
-            P[j, i] = v
+        nu[i] = z[i] - h_pred[i]
+        s = 0.0
+        for a in range(nnz):
+            t = 0.0
+            for b in range(nnz):
+                t += P[idx[a], idx[b]] * val[i, b]
+            s += val[i, a] * t
+        gate[i] = k * math.sqrt(s + r_var)
+        if abs(nu[i]) > gate[i]:
+            n_fail += 1
+            if nu[i] > 0.0:
+                n_pos += 1
+            elif nu[i] < 0.0:
+                n_neg += 1
+    if 2 * n_fail <= n or not (n_pos == n_fail or n_neg == n_fail):
+        return False, 0.0
+    med = np.median(nu)
+    n_ok = 0
+    for i in range(n):
+        if abs(nu[i] - med) <= gate[i]:
+            n_ok += 1
+    if 2 * n_ok <= n:
+        return False, 0.0
+    return True, med
+
+
+@njit(**_JIT)
+def sd_doppler_rows(x, base, base_vel, rot, ps, vs, idrift, sv, svv, rate_lead):
+    """(h (m,), val (m, 7)) of one vehicle's SD Dopplers at ``x`` (models.SdDopplerRows.all;
+    arithmetic of sd_doppler_batch)."""
+    m = sv.shape[0]
+    h = np.empty(m)
+    val = np.empty((m, 7))
+    r_v = np.empty(3)
+    v_v = np.empty(3)
+    u = np.empty(3)
+    dv = np.empty(3)
+    g = np.empty(3)
+    _abs3(base, rot, x, ps, r_v)
+    _abs3(base_vel, rot, x, vs, v_v)
+    for o in range(m):
+        d0, d1, d2 = sv[o, 0] - r_v[0], sv[o, 1] - r_v[1], sv[o, 2] - r_v[2]
+        rho = math.sqrt(d0 * d0 + d1 * d1 + d2 * d2)
+        u[0], u[1], u[2] = d0 / rho, d1 / rho, d2 / rho
+        for i in range(3):
+            dv[i] = svv[o, i] - v_v[i]
+        rate = u[0] * dv[0] + u[1] * dv[1] + u[2] * dv[2]
+        h[o] = (rate - rate_lead[o]) + x[idrift]
+        for i in range(3):
+            g[i] = -(dv[i] - u[i] * rate) / rho
+        for i in range(3):
+            val[o, i] = rot[i, 0] * g[0] + rot[i, 1] * g[1] + rot[i, 2] * g[2]
+            val[o, 3 + i] = -(rot[i, 0] * u[0] + rot[i, 1] * u[1] + rot[i, 2] * u[2])
+        val[o, 6] = 1.0
+    return h, val
+
+
+@njit(**_JIT)
+def pair_satellites(prn_v, prn_lead, pr_v, pr_lead, sv_lead, base, rot):
+    """Satellites seen by a vehicle and the lead, highest elevation first (update_gnss).
+
+    Common PRNs in ascending PRN order (``np.intersect1d(..., return_indices=True)``: first
+    occurrence in each list), without those whose pseudorange is non-finite in either
+    (counted), then stably sorted by decreasing elevation seen from the base,
+    ``atan2(up, hypot(east, north))`` of ``R (sv - base)``. Returns ``(iv, il, el, n_bad)``.
+    """
+    nl = prn_lead.shape[0]
+    nv = prn_v.shape[0]
+    # first occurrence of each PRN in each list, then the common ones in PRN order
+    sl = np.argsort(prn_lead, kind="mergesort")
+    sv_ = np.argsort(prn_v, kind="mergesort")
+    iv = np.empty(min(nl, nv), dtype=np.int64)
+    il = np.empty(min(nl, nv), dtype=np.int64)
+    a = 0
+    b = 0
+    c = 0
+    while a < nv and b < nl:
+        pa = prn_v[sv_[a]]
+        pb = prn_lead[sl[b]]
+        if pa < pb:
+            a += 1
+        elif pb < pa:
+            b += 1
+        else:
+            iv[c] = sv_[a]
+            il[c] = sl[b]
+            c += 1
+            while a < nv and prn_v[sv_[a]] == pa:
+                a += 1
+            while b < nl and prn_lead[sl[b]] == pb:
+                b += 1
+    n_bad = 0
+    keep = 0
+    for i in range(c):
+        if math.isfinite(pr_v[iv[i]]) and math.isfinite(pr_lead[il[i]]):
+            iv[keep] = iv[i]
+            il[keep] = il[i]
+            keep += 1
+        else:
+            n_bad += 1
+    iv = iv[:keep]
+    il = il[:keep]
+    neg_el = np.empty(keep)
+    for i in range(keep):
+        j = il[i]
+        e0 = sv_lead[j, 0] - base[0]
+        e1 = sv_lead[j, 1] - base[1]
+        e2 = sv_lead[j, 2] - base[2]
+        de = e0 * rot[0, 0] + e1 * rot[0, 1] + e2 * rot[0, 2]
+        dn = e0 * rot[1, 0] + e1 * rot[1, 1] + e2 * rot[1, 2]
+        du = e0 * rot[2, 0] + e1 * rot[2, 1] + e2 * rot[2, 2]
+        neg_el[i] = -math.atan2(du, math.hypot(de, dn))
+    order = np.argsort(neg_el, kind="mergesort")
+    el = np.empty(keep)
+    ivs = np.empty(keep, dtype=np.int64)
+    ils = np.empty(keep, dtype=np.int64)
+    for i in range(keep):
+        el[i] = -neg_el[order[i]]
+        ivs[i] = iv[order[i]]
+        ils[i] = il[order[i]]
+    return ivs, ils, el, n_bad
+
+
+@njit(**_JIT)
+def ranges_from(p, sv):
+    """``|sv_i - p|`` (m,) (:func:`v2v.measmodels.range_m`, same arithmetic)."""
+    m = sv.shape[0]
+    out = np.empty(m)
+    for i in range(m):
+        d0, d1, d2 = sv[i, 0] - p[0], sv[i, 1] - p[1], sv[i, 2] - p[2]
+        out[i] = math.sqrt(d0 * d0 + d1 * d1 + d2 * d2)
+    return out
+
+
+@njit(**_JIT)
+def range_rates_from(p, v, sv, svv):
+    """``u_i . (svv_i - v)``, ``u_i = (sv_i - p) / |sv_i - p|`` (:func:`v2v.measmodels.range_rate_mps`)."""
+    m = sv.shape[0]
+    out = np.empty(m)
+    for i in range(m):
+        d0, d1, d2 = sv[i, 0] - p[0], sv[i, 1] - p[1], sv[i, 2] - p[2]
+        rho = math.sqrt(d0 * d0 + d1 * d1 + d2 * d2)
+        out[i] = (d0 / rho) * (svv[i, 0] - v[0]) + (d1 / rho) * (svv[i, 1] - v[1]) + (d2 / rho) * (svv[i, 2] - v[2])
+    return out
+
+
+@njit(**_JIT)
+def sd_pseudorange_epoch(x, P, base, rot, ps, iclk, sv, rho_lead, z, r_var, gate_k, detect_jump, reset_var):
+    """One vehicle's SD pseudorange epoch in one call (production engine), the steps of
+    ``ClusterFilterBase._sd_pseudoranges`` with the same kernels: rows at ``x``
+    (:func:`sd_pseudorange_rows`), the clock-jump test (:func:`clock_jump_test`; on a jump
+    the clock state is re-initialized at ``clk + median(nu)`` with variance ``reset_var`` and
+    the rows rebuilt), the screen and first-update order (:func:`first_unflagged_order`),
+    then the sequential updates (:func:`sd_pseudorange_batch`).
+
+    Returns ``(jump, order, isolated, n_flagged, nu, s, status)``.
+    """
+    h, val = sd_pseudorange_rows(x, base, rot, ps, iclk, sv, rho_lead, x[iclk])
+    jump = False
+    if detect_jump:
+        idx = np.empty(4, dtype=np.int64)
+        for i in range(3):
+            idx[i] = ps + i
+        idx[3] = iclk
+        jump, med = clock_jump_test(P, idx, h, val, z, r_var, gate_k)
+        if jump:
+            _set_block1(x, P, iclk, x[iclk] + med, reset_var)
+            h, val = sd_pseudorange_rows(x, base, rot, ps, iclk, sv, rho_lead, x[iclk])
+    order, excluded, isolated, n_flag = first_unflagged_order(h, val, z, math.sqrt(r_var), gate_k, 4)
+    nu, s, st = sd_pseudorange_batch(x, P, base, rot, ps, iclk, sv, rho_lead, z, order, excluded, r_var, gate_k)
+    return jump, order, isolated, n_flag, nu, s, st
+
+
+@njit(**_JIT)
+def sd_doppler_epoch(x, P, base, base_vel, rot, ps, vs, idrift, sv, svv, rate_lead, z, r_var, gate_k):
+    """One vehicle's SD Doppler epoch in one call (production engine): rows
+    (:func:`sd_doppler_rows`), screen on (velocity, drift) and order
+    (:func:`first_unflagged_order`), updates (:func:`sd_doppler_batch`), as
+    ``ClusterFilterBase._sd_dopplers``. Returns ``(order, n_flagged, nu, s, status)``."""
+    h, val = sd_doppler_rows(x, base, base_vel, rot, ps, vs, idrift, sv, svv, rate_lead)
+    order, excluded, isolated, n_flag = first_unflagged_order(h, val, z, math.sqrt(r_var), gate_k, 4)
+    nu, s, st = sd_doppler_batch(x, P, base, base_vel, rot, ps, vs, idrift, sv, svv, rate_lead, z, order, excluded,
+                                 r_var, gate_k)
+    return order, n_flag, nu, s, st

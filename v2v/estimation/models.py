@@ -26,6 +26,7 @@ from typing import NamedTuple
 import numpy as np
 from numpy.typing import NDArray
 
+from v2v.estimation import kernels
 from v2v.estimation.layout import UWB, StateLayout, uwb_pair_key
 from v2v.frames import ecef_to_enu_rotation, ecef_to_geodetic, wrap_angle
 from v2v.measmodels import (
@@ -238,10 +239,11 @@ class SdPseudorangeRows:
         self.idx = np.array([ps.start, ps.start + 1, ps.start + 2, self._clk], dtype=np.int64)
         self._geo = geo
         self._rot = geo.rot_ecef_to_enu
-        self._sv = np.asarray(sv_v_ecef_m, dtype=float).reshape(-1, 3)
-        self._sv_rows = [s for s in self._sv]
-        self._rho_lead = range_m(geo.base_ecef_m, np.asarray(sv_lead_ecef_m, dtype=float).reshape(-1, 3))
-        self._rho_lead_f = self._rho_lead.tolist()
+        self._sv = np.ascontiguousarray(sv_v_ecef_m, dtype=np.float64).reshape(-1, 3)
+        self._rho_lead = kernels.ranges_from(geo.base_ecef_m, np.ascontiguousarray(sv_lead_ecef_m, dtype=np.float64)
+                                             .reshape(-1, 3))  # = range_m(base, sv_lead)
+        self._sv_rows: list[F64] | None = None  # per-row views for row(), built on first use
+        self._rho_lead_f: list[float] = []
 
     def __len__(self) -> int:
         return len(self._sv)
@@ -250,22 +252,20 @@ class SdPseudorangeRows:
         """Arguments of :func:`v2v.estimation.kernels.sd_pseudorange_batch` after ``(x, P)``:
         base position (ECEF), R, position slice start, clock index, satellite positions
         (m, 3) and the lead's ranges (m,)."""
-        return (self._geo.base_ecef_m, self._rot, self._ps.start, self._clk, self._sv,
-                np.ascontiguousarray(self._rho_lead, dtype=float))
+        return (self._geo.base_ecef_m, self._rot, self._ps.start, self._clk, self._sv, self._rho_lead)
 
     def all(self, x: F64) -> tuple[F64, F64]:
-        """(h (m,), val (m, 4)) of every row at state ``x``."""
-        r_v = self._geo.abs_position(x[self._ps])
-        d = self._sv - r_v
-        rho = np.sqrt(np.sum(d * d, axis=-1))
-        h = (rho - self._rho_lead) + x[self._clk]
-        val = np.empty((len(rho), 4))
-        val[:, :3] = -((d / rho[:, None]) @ self._rot.T)
-        val[:, 3] = 1.0
-        return h, val
+        """(h (m,), val (m, 4)) of every row at state ``x`` (compiled:
+        :func:`v2v.estimation.kernels.sd_pseudorange_rows`, the arithmetic of the batch update)."""
+        x = np.ascontiguousarray(x, dtype=np.float64)
+        return kernels.sd_pseudorange_rows(x, self._geo.base_ecef_m, self._rot, self._ps.start, self._clk, self._sv,
+                                           self._rho_lead, float(x[self._clk]))
 
     def row(self, x: F64, o: int) -> Row:
         """Row of satellite ``o`` at state ``x`` (same as :func:`sd_pseudorange`)."""
+        if self._sv_rows is None:
+            self._sv_rows = [s for s in self._sv]
+            self._rho_lead_f = self._rho_lead.tolist()
         r_v = self._geo.abs_position(x[self._ps])
         d = self._sv_rows[o] - r_v
         dx, dy, dz = d.tolist()
@@ -292,46 +292,38 @@ class SdDopplerRows:
         self.idx = np.array([*range(ps.start, ps.stop), *range(vs.start, vs.stop), self._drift], dtype=np.int64)
         self._geo = geo
         self._rot = geo.rot_ecef_to_enu
-        self._sv = np.asarray(sv_v_ecef_m, dtype=float).reshape(-1, 3)
-        self._svv = np.asarray(sv_vel_v_ecef_mps, dtype=float).reshape(-1, 3)
-        self._rate_lead = range_rate_mps(geo.base_ecef_m, geo.base_vel_ecef_mps,
-                                         np.asarray(sv_lead_ecef_m, dtype=float).reshape(-1, 3),
-                                         np.asarray(sv_vel_lead_ecef_mps, dtype=float).reshape(-1, 3))
-        self._sv_rows = [s for s in self._sv]
-        self._svv_rows = [s for s in self._svv]
-        self._rate_lead_f = self._rate_lead.tolist()
+        self._sv = np.ascontiguousarray(sv_v_ecef_m, dtype=np.float64).reshape(-1, 3)
+        self._svv = np.ascontiguousarray(sv_vel_v_ecef_mps, dtype=np.float64).reshape(-1, 3)
+        self._rate_lead = kernels.range_rates_from(  # = range_rate_mps(base, base_vel, sv_lead, svv_lead)
+            geo.base_ecef_m, geo.base_vel_ecef_mps, np.ascontiguousarray(sv_lead_ecef_m, dtype=np.float64).reshape(-1, 3),
+            np.ascontiguousarray(sv_vel_lead_ecef_mps, dtype=np.float64).reshape(-1, 3))
+        self._sv_rows: list[F64] | None = None  # per-row views for row(), built on first use
+        self._svv_rows: list[F64] = []
+        self._rate_lead_f: list[float] = []
 
     def __len__(self) -> int:
         return len(self._sv)
 
-    def _rows(self, x: F64, sel: slice) -> tuple[F64, F64]:
-        r_v = self._geo.abs_position(x[self._ps])
-        v_v = self._geo.abs_velocity(x[self._vs])
-        sv, svv = self._sv[sel], self._svv[sel]
-        rate = range_rate_mps(r_v, v_v, sv, svv)
-        h = (rate - self._rate_lead[sel]) + x[self._drift]
-        d_r, d_v = range_rate_jacobians(r_v, v_v, sv, svv)
-        val = np.empty((len(rate), 7))
-        val[:, 0:3] = d_r @ self._rot.T
-        val[:, 3:6] = d_v @ self._rot.T
-        val[:, 6] = 1.0
-        return h, val
-
     def all(self, x: F64) -> tuple[F64, F64]:
-        """(h (m,), val (m, 7)) of every row at state ``x``."""
-        return self._rows(x, slice(None))
+        """(h (m,), val (m, 7)) of every row at state ``x`` (compiled:
+        :func:`v2v.estimation.kernels.sd_doppler_rows`, the arithmetic of the batch update)."""
+        return kernels.sd_doppler_rows(np.ascontiguousarray(x, dtype=np.float64), *self.kernel_args())
 
     def kernel_args(self) -> tuple:
         """Arguments of :func:`v2v.estimation.kernels.sd_doppler_batch` after ``(x, P)``:
         base position/velocity (ECEF), R (ECEF->ENU), position/velocity slice starts, drift
         index, satellite positions/velocities (m, 3) and the lead's range rates (m,)."""
         return (self._geo.base_ecef_m, self._geo.base_vel_ecef_mps, self._rot, self._ps.start, self._vs.start,
-                self._drift, self._sv, self._svv, np.ascontiguousarray(self._rate_lead, dtype=float))
+                self._drift, self._sv, self._svv, self._rate_lead)
 
     def row(self, x: F64, o: int) -> Row:
         """Row of satellite ``o`` at state ``x``: :func:`sd_doppler`'s arithmetic
         (:func:`v2v.measmodels.range_rate_mps`, :func:`~v2v.measmodels.range_rate_jacobians`)
         on one satellite without the per-call array overhead."""
+        if self._sv_rows is None:
+            self._sv_rows = [s for s in self._sv]
+            self._svv_rows = [s for s in self._svv]
+            self._rate_lead_f = self._rate_lead.tolist()
         r_v = self._geo.abs_position(x[self._ps])
         v_v = self._geo.abs_velocity(x[self._vs])
         d = self._sv_rows[o] - r_v

@@ -14,7 +14,7 @@ from typing import Any
 
 import numpy as np
 from numpy.typing import ArrayLike, NDArray
-from scipy import stats
+from scipy import special
 
 from v2v.frames import enu_to_lead_frame
 
@@ -71,7 +71,9 @@ def chi2_band(dof: int, n_runs: int = 1, confidence: float = 0.95) -> tuple[floa
     """
     a = (1.0 - confidence) / 2.0
     k = dof * n_runs
-    return float(stats.chi2.ppf(a, k) / n_runs), float(stats.chi2.ppf(1.0 - a, k) / n_runs)
+    # chi-square quantile = 2 gammaincinv(k/2, p): what scipy.stats.chi2.ppf evaluates (bit for
+    # bit), without importing scipy.stats (~0.6 s per process, on every `v2v run`)
+    return float(2.0 * special.gammaincinv(k / 2.0, a) / n_runs), float(2.0 * special.gammaincinv(k / 2.0, 1.0 - a) / n_runs)
 
 
 def consistency_summary(values: ArrayLike, dof: int, confidence: float = 0.95) -> dict[str, Any]:

@@ -56,7 +56,7 @@ from __future__ import annotations
 import numpy as np
 import pandas as pd
 from numpy.typing import ArrayLike, NDArray
-from scipy import stats
+from scipy import special
 
 F64 = NDArray[np.float64]
 
@@ -79,7 +79,7 @@ def protection_factor(integrity_risk: float) -> float:
     """Two-sided Gaussian multiplier ``k`` with ``P(|e| > k sigma) = integrity_risk`` (3.29 for 1e-3)."""
     if not 0.0 < integrity_risk < 1.0:
         raise ValueError(f"integrity_risk must be in (0, 1), got {integrity_risk!r}")
-    return float(stats.norm.isf(integrity_risk / 2.0))
+    return float(-special.ndtri(integrity_risk / 2.0))  # norm.isf
 
 
 def lead_azimuth_from_errors(err_e_m: ArrayLike, err_n_m: ArrayLike, along_err_m: ArrayLike,

@@ -33,7 +33,7 @@ from enum import StrEnum
 
 import numpy as np
 from numpy.typing import ArrayLike, NDArray
-from scipy import stats
+from scipy import special
 
 from v2v.frames import ecef_to_enu_rotation, ecef_to_geodetic
 from v2v.sensors.gnss.atmosphere import (
@@ -209,7 +209,7 @@ def solve_spp(
         n_used = int(used.sum())
         dof = n_used - 4
         chi2 = float(np.sum(w * res[used] ** 2))
-        thr = float(stats.chi2.ppf(1.0 - cfg.alpha, dof)) if dof > 0 else 0.0
+        thr = float(2.0 * special.gammaincinv(dof / 2.0, 1.0 - cfg.alpha)) if dof > 0 else 0.0  # chi2.ppf
         if dof > 0 and chi2 > thr:
             if cfg.exclude and n_used - 1 >= 5:
                 q_v = 1.0 / w - np.einsum("ij,jk,ik->i", h_mat, np.linalg.inv(nmat), h_mat)
