@@ -6,14 +6,21 @@ repeated so it lasts the whole run, one GPS+UWB+Bearing solution, replay off) in
 process. A sampler thread reads the RSS (psutil, else /proc/self/statm, else
 ``resource.getrusage`` peak) every 0.2 wall seconds; light hooks on
 ``SumoSimulation.step`` and the solution's ``truth_at`` callback tag each sample with the
-stage (traffic, sensors/exchange, filter) and the simulated time it has reached.
+stage (traffic, sensors/exchange, filter; "outputs" for the end-of-run tables of a streamed
+run, excluded from the slopes) and the simulated time it has reached.
 
 Prints, per stage, the RSS when the simulated time crosses each ``--every`` seconds, the
 least-squares slope of RSS vs simulated time (MB per simulated hour) and the peak.
 Memory that grows with run length shows up as a positive slope in the traffic and
 filter stages. Nothing is asserted.
 
-    .venv/bin/python benchmarks/bench_memory.py [--duration 3600] [--vehicles 10] [--every 300]
+The run is streamed in chunks of ``--chunk`` simulated seconds (default: the library's
+``v2v.run.DEFAULT_CHUNK_S``), so the stages interleave: each sample is tagged with the
+stage running when it was taken ("traffic" while SUMO steps, "filter" while a solution
+filters a chunk). ``--chunk inf`` processes the run as one chunk (the pre-streaming
+memory profile, apart from the per-update logs, which are spilled to disk either way).
+
+    .venv/bin/python benchmarks/bench_memory.py [--duration 3600] [--vehicles 10] [--every 300] [--chunk 30]
 """
 
 from __future__ import annotations
@@ -111,6 +118,16 @@ def install_hooks(sampler: Sampler) -> None:
         return bg0(*a, **k)
 
     pipeline.build_gnss = build_gnss
+    import v2v.run as run_mod
+
+    if hasattr(run_mod, "_read_pickles"):  # streamed runs: the end-of-run outputs (epochs table, summary)
+        rp0 = run_mod._read_pickles
+
+        def read_pickles(*a, **k):
+            sampler.mark("outputs", sampler.sim_t)
+            return rp0(*a, **k)
+
+        run_mod._read_pickles = read_pickles
 
 
 def scenario(duration_s: float, vehicles: int):
@@ -155,6 +172,7 @@ def main(argv: list[str] | None = None) -> int:
     ap.add_argument("--vehicles", type=int, default=10)
     ap.add_argument("--every", type=float, default=300.0, help="table row every this many simulated seconds")
     ap.add_argument("--json", type=Path, default=None, help="write the samples and slopes here")
+    ap.add_argument("--chunk", type=float, default=None, help="chunk length, simulated s (inf: one chunk)")
     args = ap.parse_args(argv)
     from v2v.run import run_scenario
 
@@ -162,12 +180,16 @@ def main(argv: list[str] | None = None) -> int:
     install_hooks(sampler)
     sc = scenario(args.duration, args.vehicles)
     with tempfile.TemporaryDirectory() as tmp, sampler:
-        res = run_scenario(sc, Path(tmp) / "run", quiet=True, replay=False)
+        kw = {} if args.chunk is None else {"chunk_s": args.chunk}
+        res = run_scenario(sc, Path(tmp) / "run", quiet=True, replay=False, **kw)
         sampler.mark("done", float(res.summary["simulated_s"]))
         sizes = {p.name: p.stat().st_size / 1e6 for p in (Path(tmp) / "run").iterdir()}
     lines, slopes = table(sampler.samples, args.every)
     peak = max(r for *_, r in sampler.samples)
-    print(f"{args.vehicles} vehicles, {res.summary['simulated_s']:.0f} s simulated, wall {res.summary['wall_s']:.0f} s, "
+    outputs = [r for _, st, _, r in sampler.samples if st == "outputs"]
+    if outputs:
+        lines.append(f"{'outputs (end)':<18} {'':>9} {max(outputs):9.1f}  (peak while writing epochs / summary)")
+    print(f"{args.vehicles} vehicles, {res.summary['simulated_s']:.0f} s simulated, chunk {args.chunk or 'default'} s, wall {res.summary['wall_s']:.0f} s, "
           f"timing {res.summary['timing_s']}")
     print("\n".join(lines))
     for k, v in slopes.items():

@@ -64,6 +64,13 @@ class V2VExchange:
             return
         heapq.heappush(self._in_flight, (msg.t_s + self.config.latency_s, next(self._seq), msg))
 
+    @property
+    def processed_until_s(self) -> float:
+        """The filter's horizon so far: every message delivered later has a time tag
+        ``>= processed_until_s - 1e-9`` (earlier ones are counted late and dropped), which is
+        what lets a chunked run hand the filter a chunk's events before the next chunk exists."""
+        return self._processed_until_s
+
     def deliver(self, now_s: float) -> list[Message]:
         """Messages whose time tags the filter may process at ``now_s``, in time-tag order."""
         while self._in_flight and self._in_flight[0][0] <= now_s + 1e-9:

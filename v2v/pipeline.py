@@ -11,6 +11,7 @@ Every solution processes the *same* measurements (and the same exchange losses).
 
 from __future__ import annotations
 
+import itertools
 from collections.abc import Callable, Iterable, Sequence
 from dataclasses import dataclass, field
 from pathlib import Path
@@ -162,6 +163,7 @@ def build_filter(sol: SolutionSection, lead: str, vehicles: Sequence[str], beari
             resolve=sol.ambiguity_resolution,
             ar_min_success=sol.ar_min_success,
             ar_ratio=sol.ar_ratio,
+            ar_min_dd=3 if "uwb" in sol.sensors else 4,  # UWB ranges give the redundancy (PhaseConfig)
         ) if sol.carrier_phase else None,
     )
     return ClusterEkf(layout, cfg)
@@ -172,7 +174,11 @@ def build_filter(sol: SolutionSection, lead: str, vehicles: Sequence[str], beari
 
 @dataclass(frozen=True)
 class Event:
-    """A batch of measurements with one time tag, as the lead's filter receives it."""
+    """A batch of measurements with one time tag, as the lead's filter receives it.
+
+    ``bad_prns``: per vehicle, the PRNs whose pseudorange the simulator corrupted beyond the
+    filter's model (NLOS or an injected fault), computed once per event for every solution.
+    """
 
     t_s: float
     kind: str  # "gnss" | "uwb" | "bearing"
@@ -180,6 +186,7 @@ class Event:
     uwb: UwbRanges | None = None
     bearings: Bearings | None = None
     lead_base_ecef_m: np.ndarray | None = None
+    bad_prns: dict[str, frozenset[int]] | None = None
 
 
 _KIND_RANK = {"gnss": 0, "uwb": 1, "bearing": 2}
@@ -193,6 +200,147 @@ def _subset_bearings(b: Bearings, idx: np.ndarray) -> Bearings:
     )
 
 
+def _bad_prns(eps: dict[str, GnssEpoch]) -> dict[str, frozenset[int]]:
+    """Per vehicle: PRNs (first occurrence in the epoch) that are NLOS or carry an injected fault."""
+    out: dict[str, frozenset[int]] = {}
+    for v, ep in eps.items():
+        if ep.n == 0:
+            out[v] = frozenset()
+            continue
+        fault = ep.errors_m.get("fault")
+        bad = ~np.asarray(ep.los, dtype=bool)
+        if fault is not None:
+            bad = bad | (fault != 0.0)
+        _, first = np.unique(ep.prn, return_index=True)
+        out[v] = frozenset(int(p) for p in ep.prn[first][bad[first]])
+    return out
+
+
+class ExchangeStream:
+    """The V2V exchange of one cluster, fed chunk by chunk (see :func:`exchange_stream`).
+
+    Add each chunk's measurements (:meth:`add_gnss`, :meth:`add_uwb`, :meth:`add_bearings`, in
+    time order per kind) and output epochs (:meth:`add_output_time`), then :meth:`advance` with
+    the time up to which every measurement is known: it sends (in time-tag order, GNSS before
+    UWB before bearings at equal tags) and delivers at each output epoch it can, and returns
+    the events that no later delivery can precede. Messages still in flight (latency) carry
+    over to the next chunk. The sequence of sends, deliveries, loss draws and events is the
+    one of a single whole-run call, so the result does not depend on the chunk length.
+    """
+
+    def __init__(self, exchange: V2VExchange, lead_base: Callable[[GnssEpoch], np.ndarray | None],
+                 dropped: Callable[[str, float], bool] | None = None):
+        self.exchange = exchange
+        self.lead_base = lead_base
+        self.dropped = dropped
+        self._msgs: list[tuple[float, int, int, Message]] = []  # (t_s, rank, seq, message), unsent
+        self._sorted = True
+        self._seq = itertools.count()
+        self._times: list[float] = []  # output epochs not yet delivered at
+        self._delivered: list[Message] = []  # delivered, not yet turned into events
+        self._n_sent_times = 0
+
+    def _add(self, t: float, sender: str, kind: str, payload: Any) -> None:
+        if self.dropped is not None and self.dropped(sender, t):
+            return
+        self._msgs.append((t, _KIND_RANK[kind], next(self._seq), Message(t, sender, kind, payload)))
+        self._sorted = False
+
+    def add_gnss(self, t_s: float, eps: dict[str, GnssEpoch]) -> None:
+        for v, ep in eps.items():
+            self._add(t_s, v, "gnss", ep)
+
+    def add_uwb(self, uwb: UwbRanges | None) -> None:
+        if uwb is not None:
+            for k in range(uwb.n):
+                self._add(float(uwb.t_s[k]), uwb.a[k], "uwb", (uwb, k))
+
+    def add_bearings(self, bearings: Bearings | None) -> None:
+        if bearings is not None:
+            for k in range(bearings.n):
+                self._add(float(bearings.t_s[k]), bearings.a[k], "bearing", (bearings, k))
+
+    def add_output_time(self, t_s: float) -> None:
+        self._times.append(t_s)
+
+    def advance(self, known_until_s: float, final: bool = False) -> list[Event]:
+        """Send and deliver at every output epoch ``now`` with ``now + 1e-9 < known_until_s``
+        (all of them when ``final``, then everything still in flight); return the complete events."""
+        if not self._sorted:
+            self._msgs.sort(key=lambda m: (m[0], m[1], m[2]))
+            self._sorted = True
+        exch = self.exchange
+        i = 0
+        n_done = 0
+        msgs = self._msgs
+        for now in self._times:
+            if not final and not now + 1e-9 < known_until_s:
+                break
+            while i < len(msgs) and msgs[i][0] <= now + 1e-9:
+                exch.send(msgs[i][3])
+                i += 1
+            self._delivered += exch.deliver(now)
+            n_done += 1
+        del self._times[:n_done]
+        if final:
+            while i < len(msgs):
+                exch.send(msgs[i][3])
+                i += 1
+            self._delivered += exch.deliver(1e18)
+        del msgs[:i]
+        self._delivered.sort(key=lambda m: (m.t_s, _KIND_RANK[m.kind]))
+        if final:
+            cut = len(self._delivered)
+        else:  # a later delivery has t_s >= the filter's horizon - 1e-9 (V2VExchange.deliver)
+            s = exch.processed_until_s - 2e-9
+            cut = 0
+            while cut < len(self._delivered) and self._delivered[cut].t_s < s:
+                cut += 1
+        ready, self._delivered = self._delivered[:cut], self._delivered[cut:]
+        return self._events(ready)
+
+    def _events(self, delivered: list[Message]) -> list[Event]:
+        from v2v.sensors.uwb import select_ranges
+
+        lead_id = self.exchange.lead_id
+        events: list[Event] = []
+        j = 0
+        while j < len(delivered):
+            m = delivered[j]
+            k = j
+            while k < len(delivered) and delivered[k].t_s == m.t_s and delivered[k].kind == m.kind:
+                k += 1
+            group = delivered[j:k]
+            if m.kind == "gnss":
+                eps = {g.sender: g.payload for g in group}
+                base = self.lead_base(eps[lead_id]) if lead_id in eps else None
+                events.append(Event(m.t_s, "gnss", gnss=eps, lead_base_ecef_m=base, bad_prns=_bad_prns(eps)))
+            elif m.kind == "uwb":
+                for g in group:
+                    src, idx = g.payload
+                    events.append(Event(m.t_s, "uwb", uwb=select_ranges(src, np.array([idx]))))
+            elif m.kind == "bearing":
+                srcs = {id(g.payload[0]): g.payload[0] for g in group}
+                if len(srcs) == 1:
+                    src = group[0].payload[0]
+                    events.append(Event(m.t_s, "bearing", bearings=_subset_bearings(src, np.array([g.payload[1] for g in group]))))
+                else:  # one time tag split over two chunks' outputs (not expected: bearings are per step)
+                    parts = [_subset_bearings(g.payload[0], np.array([g.payload[1]])) for g in group]
+                    events.append(Event(m.t_s, "bearing", bearings=_concat_bearings(parts)))
+            j = k
+        return events
+
+
+def _concat_bearings(parts: Sequence[Bearings]) -> Bearings:
+    return Bearings(
+        t_s=np.concatenate([p.t_s for p in parts]), a=tuple(x for p in parts for x in p.a),
+        b=tuple(x for p in parts for x in p.b), bearing_rad=np.concatenate([p.bearing_rad for p in parts]),
+        true_bearing_rad=np.concatenate([p.true_bearing_rad for p in parts]),
+        azimuth_reported_rad=np.concatenate([p.azimuth_reported_rad for p in parts]),
+        true_azimuth_rad=np.concatenate([p.true_azimuth_rad for p in parts]), los=np.concatenate([p.los for p in parts]),
+    )
+
+
 def exchange_stream(gnss_epochs: Sequence[tuple[float, dict[str, GnssEpoch]]], uwb: UwbRanges | None,
                     bearings: Bearings | None, exchange: V2VExchange, lead_base: Callable[[GnssEpoch], np.ndarray | None],
                     output_times: Sequence[float],
@@ -201,60 +349,134 @@ def exchange_stream(gnss_epochs: Sequence[tuple[float, dict[str, GnssEpoch]]], u
     (time-tag order, GNSS before UWB before bearings at equal tags) and the output epochs.
 
     A UWB range travels with its initiator ``a``; a bearing with its measuring vehicle.
+    One whole-run :class:`ExchangeStream`.
     """
-    from v2v.sensors.uwb import select_ranges
-
-    msgs: list[Message] = []
+    xs = ExchangeStream(exchange, lead_base, dropped)
     for t, eps in gnss_epochs:
-        msgs += [Message(t, v, "gnss", ep) for v, ep in eps.items()]
-    if uwb is not None:
-        msgs += [Message(float(uwb.t_s[k]), uwb.a[k], "uwb", k) for k in range(uwb.n)]
-    if bearings is not None:
-        msgs += [Message(float(bearings.t_s[k]), bearings.a[k], "bearing", k) for k in range(bearings.n)]
-    if dropped is not None:
-        msgs = [m for m in msgs if not dropped(m.sender, m.t_s)]
-    msgs.sort(key=lambda m: (m.t_s, _KIND_RANK[m.kind]))
-    delivered: list[Message] = []
-    i = 0
-    for now in list(output_times) + [np.inf]:
-        while i < len(msgs) and msgs[i].t_s <= now + 1e-9:
-            exchange.send(msgs[i])
-            i += 1
-        delivered += exchange.deliver(now if np.isfinite(now) else 1e18)
-    delivered.sort(key=lambda m: (m.t_s, _KIND_RANK[m.kind]))
-    events: list[Event] = []
-    j = 0
-    while j < len(delivered):
-        m = delivered[j]
-        k = j
-        while k < len(delivered) and delivered[k].t_s == m.t_s and delivered[k].kind == m.kind:
-            k += 1
-        group = delivered[j:k]
-        if m.kind == "gnss":
-            eps = {g.sender: g.payload for g in group}
-            base = lead_base(eps[exchange.lead_id]) if exchange.lead_id in eps else None
-            events.append(Event(m.t_s, "gnss", gnss=eps, lead_base_ecef_m=base))
-        elif m.kind == "uwb" and uwb is not None:
-            for g in group:
-                events.append(Event(m.t_s, "uwb", uwb=select_ranges(uwb, np.array([g.payload]))))
-        elif m.kind == "bearing" and bearings is not None:
-            events.append(Event(m.t_s, "bearing", bearings=_subset_bearings(bearings, np.array([g.payload for g in group]))))
-        j = k
-    return events, list(output_times)
+        xs.add_gnss(t, eps)
+    xs.add_uwb(uwb)
+    xs.add_bearings(bearings)
+    for t in output_times:
+        xs.add_output_time(t)
+    return xs.advance(np.inf, final=True), list(output_times)
 
 
 # --------------------------------------------------------------------------- processing
 
 
+UPDATE_COLUMNS = ("t_s", "kind", "vehicles", "prn", "nis", "accepted", "faulty")
+
+
+class UpdateLog:
+    """Per-update diagnostics of one solution, kept compact: columns of each chunk are spilled
+    to a temporary file (numpy arrays, pickled), so memory does not grow with the run. Read
+    them back with :meth:`columns` (or :attr:`SolutionRecord.updates`)."""
+
+    def __init__(self) -> None:
+        self._pending: list[tuple[float, Sequence[UpdateInfo], Sequence[bool]]] = []  # per event
+        self._file: Any = None
+        self.n = 0
+
+    def add(self, t_s: float, infos: Sequence[UpdateInfo], faulty: Sequence[bool]) -> None:
+        self._pending.append((t_s, infos, faulty))
+
+    def flush(self) -> None:
+        if not self._pending:
+            return
+        import pickle
+        import tempfile
+
+        p = [(t, info, f) for t, infos, fs in self._pending for info, f in zip(infos, fs, strict=True)]
+        if not p:
+            self._pending = []
+            return
+        cols = {
+            "t_s": np.fromiter((x[0] for x in p), float, len(p)),
+            "kind": np.array([x[1].kind for x in p], dtype=object),
+            "vehicles": np.array([",".join(x[1].vehicles) for x in p], dtype=object),
+            "prn": [x[1].prn for x in p],
+            "nis": np.fromiter((x[1].nis for x in p), float, len(p)),
+            "accepted": np.fromiter((bool(x[1].accepted) for x in p), bool, len(p)),
+            "faulty": np.fromiter((x[2] for x in p), bool, len(p)),
+        }
+        if self._file is None:
+            self._file = tempfile.TemporaryFile(prefix="v2v_updates_")
+        pickle.dump(cols, self._file, protocol=pickle.HIGHEST_PROTOCOL)
+        self.n += len(p)
+        self._pending = []
+
+    def kind_statistics(self) -> dict[str, Any]:
+        """Per measurement kind (sorted), :func:`v2v.metrics.summary.update_kind_statistics` of
+        the whole run, read back one kind at a time as compact arrays (the same numbers as the
+        per-update table's, bit for bit: same values in the same order)."""
+        import pickle
+
+        from v2v.metrics.summary import update_kind_statistics
+
+        self.flush()
+        if self._file is None:
+            return {}
+        kinds: set[str] = set()
+        for cols in self._chunks(pickle):
+            kinds.update(np.unique(cols["kind"]).tolist())
+        out: dict[str, Any] = {}
+        for kind in sorted(kinds):
+            acc, faulty, nis = [], [], []
+            for cols in self._chunks(pickle):
+                m = cols["kind"] == kind
+                acc.append(cols["accepted"][m])
+                faulty.append(cols["faulty"][m])
+                nis.append(cols["nis"][m])
+            out[kind] = update_kind_statistics(np.concatenate(acc), np.concatenate(faulty), np.concatenate(nis))
+        return out
+
+    def _chunks(self, pickle: Any):
+        self._file.seek(0)
+        while True:
+            try:
+                yield pickle.load(self._file)
+            except EOFError:
+                break
+        self._file.seek(0, 2)
+
+    def columns(self, names: Sequence[str] = UPDATE_COLUMNS) -> dict[str, list[Any]]:
+        """The whole run's updates, column by column (lists, in update order)."""
+        import pickle
+
+        self.flush()
+        out: dict[str, list[Any]] = {k: [] for k in names}
+        if self._file is None:
+            return out
+        self._file.seek(0)
+        while True:
+            try:
+                cols = pickle.load(self._file)
+            except EOFError:
+                break
+            for k in names:
+                out[k].extend(cols[k].tolist() if isinstance(cols[k], np.ndarray) else cols[k])
+        self._file.seek(0, 2)
+        return out
+
+
 @dataclass
 class SolutionRecord:
-    """Per-epoch estimates and per-update diagnostics of one solution."""
+    """Per-epoch estimates and per-update diagnostics of one solution.
+
+    ``rows`` holds the epochs not yet taken by :meth:`take_rows` (a streamed run takes them
+    every chunk); ``updates`` reads the compact per-update log back (columns
+    :data:`UPDATE_COLUMNS`).
+    """
 
     name: str
     rows: dict[str, list[Any]] = field(default_factory=dict)
     membership: list[tuple[float, str, str]] = field(default_factory=list)  # (t_s, vehicle, left|joined)
     counters: dict[str, int] = field(default_factory=dict)  # the filter's event counters at the end
-    updates: dict[str, list[Any]] = field(default_factory=lambda: {"t_s": [], "kind": [], "vehicles": [], "prn": [], "nis": [], "accepted": [], "faulty": []})
+    log: UpdateLog = field(default_factory=UpdateLog)
+
+    @property
+    def updates(self) -> dict[str, list[Any]]:
+        return self.log.columns()
 
     def add_row(self, row: dict[str, Any]) -> None:
         if not self.rows:
@@ -266,18 +488,17 @@ class SolutionRecord:
         for k, col in self.rows.items():
             col.append(row.get(k, float("nan")))
 
+    def take_rows(self) -> dict[str, list[Any]]:
+        """The epochs recorded since the last call (columns), and forget them."""
+        rows, self.rows = self.rows, {}
+        return rows
+
 
 def _faulty(info: UpdateInfo, ev: Event) -> bool:
     """Did the simulator corrupt this measurement beyond the filter's model (NLOS or an injected fault)?"""
     if info.kind in (KIND_SD_PR, KIND_SD_PR_PAIR) and ev.gnss is not None:
-        for v in info.vehicles:
-            ep = ev.gnss.get(v)
-            if ep is None:
-                continue
-            hit = np.flatnonzero(ep.prn == info.prn)
-            if hit.size and (not bool(ep.los[hit[0]]) or ep.errors_m.get("fault", np.zeros(ep.n))[hit[0]] != 0.0):
-                return True
-        return False
+        bad = ev.bad_prns if ev.bad_prns is not None else _bad_prns(ev.gnss)
+        return any(info.prn in bad.get(v, ()) for v in info.vehicles)
     if info.kind == KIND_UWB and ev.uwb is not None:
         return not bool(ev.uwb.los[0]) or float(ev.uwb.errors_m.get("fault", np.zeros(1))[0]) != 0.0
     if info.kind == KIND_BEARING and ev.bearings is not None:
@@ -285,107 +506,156 @@ def _faulty(info: UpdateInfo, ev: Event) -> bool:
     return False
 
 
+def _faulty_flags(infos: Sequence[UpdateInfo], ev: Event) -> list[bool]:
+    """:func:`_faulty` of every update of one event, with the event-level work done once
+    (most GNSS events have no NLOS / faulted satellite at all)."""
+    if ev.kind == "gnss":
+        bad = ev.bad_prns if ev.bad_prns is not None else (_bad_prns(ev.gnss) if ev.gnss is not None else {})
+        if not any(bad.values()):
+            return [False] * len(infos)
+        return [info.kind in (KIND_SD_PR, KIND_SD_PR_PAIR) and any(info.prn in bad.get(v, ()) for v in info.vehicles)
+                for info in infos]
+    if ev.kind == "uwb" and ev.uwb is not None:
+        f = not bool(ev.uwb.los[0]) or float(ev.uwb.errors_m.get("fault", np.zeros(1))[0]) != 0.0
+        return [f and info.kind == KIND_UWB for info in infos]
+    if ev.kind == "bearing" and ev.bearings is not None:
+        f = not bool(np.all(ev.bearings.los))
+        return [f and info.kind == KIND_BEARING for info in infos]
+    return [_faulty(info, ev) for info in infos]
+
+
+class SolutionRunner:
+    """One solution's filter over a cluster's event stream, resumable chunk by chunk.
+
+    :meth:`run` processes output epochs given the events (in time-tag order) that contain
+    every event up to the last of those epochs; the loop state (filter time, pending update
+    infos, last GNSS epoch for the carrier-phase truth, previous output time, membership)
+    is kept across calls, so chunked processing equals one whole-run :func:`run_solution`.
+    """
+
+    def __init__(self, sol: SolutionSection, ekf: ClusterEkf, lead: str, vehicles: Sequence[str],
+                 on_epoch: Callable[[float, str, ClusterEkf, TrafficStep, list[dict[str, Any]]], None] | None = None):
+        self.sol, self.ekf, self.lead, self.vehicles = sol, ekf, lead, list(vehicles)
+        self.on_epoch = on_epoch
+        self.rec = SolutionRecord(sol.name)
+        self.use = set(sol.sensors)
+        self.t_filter: float | None = None
+        self.pending: list[UpdateInfo] = []
+        self.last_gnss: tuple[float, dict[str, GnssEpoch]] | None = None  # for the phase truth (wrong fixes)
+        self.t_prev_out: float | None = None
+        self.members = set(vehicles)
+        self.last_heard: dict[str, float] = {}
+        self.consumed = 0  # events consumed by the last call of run_solution(runner=self)
+
+    def run(self, events: Sequence[Event], output_times: Iterable[float],
+            truth_at: Callable[[float], TrafficStep | None]) -> int:
+        """Process ``output_times``; returns how many leading ``events`` were consumed."""
+        sol, ekf, lead, vehicles, rec = self.sol, self.ekf, self.lead, self.vehicles, self.rec
+        use, members, last_heard = self.use, self.members, self.last_heard
+        t_filter, pending, last_gnss, t_prev_out = self.t_filter, self.pending, self.last_gnss, self.t_prev_out
+        ei = 0
+        n_events = len(events)
+        for t_out in output_times:
+            # Cluster membership as the lead sees it: a vehicle silent for LEAVE_AFTER_S has left
+            # (its block is marginalized out); its next GNSS message adds it back (re-initialized).
+            for v in list(ekf.layout.vehicles):
+                if t_out - last_heard.setdefault(v, t_out) > LEAVE_AFTER_S:
+                    ekf.remove_vehicle(v)
+                    rec.membership.append((t_out, v, "left"))
+            has_gnss = True
+            if sol.height_aiding_sigma_m is not None:  # look ahead only within this output interval
+                has_gnss = False
+                k = ei
+                while k < n_events and events[k].t_s <= t_out + 1e-9:
+                    if events[k].kind == "gnss" and events[k].lead_base_ecef_m is not None:
+                        has_gnss = True
+                        break
+                    k += 1
+            aided = False
+            while ei < n_events and events[ei].t_s <= t_out + 1e-9:
+                ev = events[ei]
+                ei += 1
+                # any message counts as "heard", whatever sensors this solution uses
+                heard = (ev.gnss or {}).keys() if ev.kind == "gnss" else (
+                    set(ev.uwb.a) | set(ev.uwb.b) if ev.kind == "uwb" and ev.uwb is not None else
+                    set(ev.bearings.a) if ev.bearings is not None else set())
+                for v in heard:
+                    last_heard[v] = ev.t_s
+                if ev.kind not in use:
+                    continue
+                if ev.kind == "gnss":
+                    for v in heard:
+                        if v in members and v != lead and v not in ekf.layout.vehicles:
+                            ekf.add_vehicle(v)
+                            rec.membership.append((ev.t_s, v, "joined"))
+                if t_filter is None:
+                    t_filter = ev.t_s
+                ekf.predict(max(0.0, ev.t_s - t_filter))
+                t_filter = max(t_filter, ev.t_s)
+                infos = []
+                if not has_gnss and not aided and sol.height_aiding_sigma_m is not None:
+                    infos += ekf.update_height_aiding(sol.height_aiding_sigma_m)
+                    aided = True
+                if ev.kind == "gnss":
+                    if ev.lead_base_ecef_m is None:
+                        continue
+                    infos = ekf.update_gnss(ev.gnss or {}, ev.lead_base_ecef_m)
+                    last_gnss = (ev.t_s, ev.gnss or {})
+                elif ev.kind == "uwb":
+                    infos += ekf.update_uwb(ev.uwb)  # type: ignore[arg-type]
+                else:
+                    infos += ekf.update_bearings(ev.bearings)  # type: ignore[arg-type]
+                if infos:
+                    rec.log.add(ev.t_s, infos, _faulty_flags(infos, ev))
+                pending += infos
+            if t_filter is None:
+                continue
+            ekf.predict(max(0.0, t_out - t_filter))
+            t_filter = max(t_filter, t_out)
+            step = truth_at(t_out)
+            if step is None or lead not in step.vehicles:
+                pending = []
+                continue
+            rows = _epoch_rows(sol.name, t_out, ekf, step, lead, vehicles, pending)
+            if ekf.config.phase is not None:
+                # the status belongs to a GNSS epoch delivered in this output interval (t_prev_out, t_out]
+                fresh = last_gnss is not None and (t_prev_out is None or last_gnss[0] > t_prev_out + 1e-9)
+                _phase_columns(rows, ekf, last_gnss[1] if fresh and last_gnss is not None else None, lead)
+            t_prev_out = t_out
+            for r in rows:
+                rec.add_row(r)
+            if self.on_epoch is not None:
+                self.on_epoch(t_out, sol.name, ekf, step, rows)
+            pending = []
+        self.t_filter, self.pending, self.last_gnss, self.t_prev_out = t_filter, pending, last_gnss, t_prev_out
+        rec.log.flush()
+        return ei
+
+    def finish(self) -> SolutionRecord:
+        self.rec.counters = dict(self.ekf.counters)
+        self.rec.log.flush()
+        return self.rec
+
+
 def run_solution(sol: SolutionSection, ekf: ClusterEkf, events: Sequence[Event], output_times: Sequence[float],
                  truth_at: Callable[[float], TrafficStep | None], lead: str, vehicles: Sequence[str],
-                 on_epoch: Callable[[float, str, ClusterEkf, TrafficStep, list[dict[str, Any]]], None] | None = None) -> SolutionRecord:
+                 on_epoch: Callable[[float, str, ClusterEkf, TrafficStep, list[dict[str, Any]]], None] | None = None,
+                 runner: SolutionRunner | None = None) -> SolutionRecord:
     """Filter the delivered events with one solution and record an estimate at every output epoch.
 
     Output epochs are the GNSS epoch grid (they continue through GNSS outages). In an
     output interval with no usable GNSS, a solution with ``height_aiding_sigma_m`` adds the
     "relative up = 0" pseudo-measurement once, before its UWB and bearing updates (UWB and
     bearings carry no vertical information; see ``FilterConfig.height_aiding_sigma_m``).
+    One whole-run :class:`SolutionRunner`; or, given ``runner`` (a streamed run, chunk by
+    chunk), that runner continued over ``output_times`` (``sol``, ``ekf``, ``lead``,
+    ``vehicles``, ``on_epoch`` are then the runner's own): the returned record is the same
+    object every chunk, its ``rows`` holding the epochs since the caller last took them.
     """
-    rec = SolutionRecord(sol.name)
-    use = set(sol.sensors)
-    t_filter: float | None = None
-    ei = 0
-    pending: list[UpdateInfo] = []
-    last_gnss: tuple[float, dict[str, GnssEpoch]] | None = None  # for the phase truth (wrong fixes)
-    n_events = len(events)
-    t_prev_out: float | None = None
-    members = set(vehicles)
-    last_heard: dict[str, float] = {}
-    for t_out in output_times:
-        # Cluster membership as the lead sees it: a vehicle silent for LEAVE_AFTER_S has left
-        # (its block is marginalized out); its next GNSS message adds it back (re-initialized).
-        for v in list(ekf.layout.vehicles):
-            if t_out - last_heard.setdefault(v, t_out) > LEAVE_AFTER_S:
-                ekf.remove_vehicle(v)
-                rec.membership.append((t_out, v, "left"))
-        has_gnss = True
-        if sol.height_aiding_sigma_m is not None:  # look ahead only within this output interval
-            has_gnss = False
-            k = ei
-            while k < n_events and events[k].t_s <= t_out + 1e-9:
-                if events[k].kind == "gnss" and events[k].lead_base_ecef_m is not None:
-                    has_gnss = True
-                    break
-                k += 1
-        aided = False
-        while ei < n_events and events[ei].t_s <= t_out + 1e-9:
-            ev = events[ei]
-            ei += 1
-            # any message counts as "heard", whatever sensors this solution uses
-            heard = (ev.gnss or {}).keys() if ev.kind == "gnss" else (
-                set(ev.uwb.a) | set(ev.uwb.b) if ev.kind == "uwb" and ev.uwb is not None else
-                set(ev.bearings.a) if ev.bearings is not None else set())
-            for v in heard:
-                last_heard[v] = ev.t_s
-            if ev.kind not in use:
-                continue
-            if ev.kind == "gnss":
-                for v in heard:
-                    if v in members and v != lead and v not in ekf.layout.vehicles:
-                        ekf.add_vehicle(v)
-                        rec.membership.append((ev.t_s, v, "joined"))
-            if t_filter is None:
-                t_filter = ev.t_s
-            ekf.predict(max(0.0, ev.t_s - t_filter))
-            t_filter = max(t_filter, ev.t_s)
-            infos = []
-            if not has_gnss and not aided and sol.height_aiding_sigma_m is not None:
-                infos += ekf.update_height_aiding(sol.height_aiding_sigma_m)
-                aided = True
-            if ev.kind == "gnss":
-                if ev.lead_base_ecef_m is None:
-                    continue
-                infos = ekf.update_gnss(ev.gnss or {}, ev.lead_base_ecef_m)
-                last_gnss = (ev.t_s, ev.gnss or {})
-            elif ev.kind == "uwb":
-                infos += ekf.update_uwb(ev.uwb)  # type: ignore[arg-type]
-            else:
-                infos += ekf.update_bearings(ev.bearings)  # type: ignore[arg-type]
-            for info in infos:
-                u = rec.updates
-                u["t_s"].append(ev.t_s)
-                u["kind"].append(info.kind)
-                u["vehicles"].append(",".join(info.vehicles))
-                u["prn"].append(info.prn)
-                u["nis"].append(info.nis)
-                u["accepted"].append(info.accepted)
-                u["faulty"].append(_faulty(info, ev))
-            pending += infos
-        if t_filter is None:
-            continue
-        ekf.predict(max(0.0, t_out - t_filter))
-        t_filter = max(t_filter, t_out)
-        step = truth_at(t_out)
-        if step is None or lead not in step.vehicles:
-            pending = []
-            continue
-        rows = _epoch_rows(sol.name, t_out, ekf, step, lead, vehicles, pending)
-        if ekf.config.phase is not None:
-            # the status belongs to a GNSS epoch delivered in this output interval (t_prev_out, t_out]
-            fresh = last_gnss is not None and (t_prev_out is None or last_gnss[0] > t_prev_out + 1e-9)
-            _phase_columns(rows, ekf, last_gnss[1] if fresh and last_gnss is not None else None, lead)
-        t_prev_out = t_out
-        for r in rows:
-            rec.add_row(r)
-        if on_epoch is not None:
-            on_epoch(t_out, sol.name, ekf, step, rows)
-        pending = []
-    rec.counters = dict(ekf.counters)
-    return rec
+    if runner is None:
+        runner = SolutionRunner(sol, ekf, lead, vehicles, on_epoch=on_epoch)
+    runner.consumed = runner.run(events, output_times, truth_at)
+    return runner.finish()
 
 
 def _epoch_rows(name: str, t_s: float, ekf: ClusterEkf, step: TrafficStep, lead: str, vehicles: Sequence[str],

@@ -1,8 +1,14 @@
 """One run of the simulator: scenario in, run folder out.
 
-Pipeline (streaming, one SUMO step at a time)::
+Pipeline, streamed in chunks of simulated time (``DEFAULT_CHUNK_S``)::
 
     traffic (SUMO truth) -> sensors -> exchange -> estimation -> metrics -> outputs
+
+Each chunk: SUMO advances, the sensors synthesize the chunk (random streams and states carry
+over), the V2V exchange delivers it (messages in flight carry over), every solution's filter
+(kept across chunks) consumes what is complete, and the rows go to disk; then the chunk's
+objects are dropped. Memory does not grow with the run; outputs do not depend on the chunk
+length.
 
 Outputs in the run folder (the folder is built under a hidden temporary name and
 renamed when complete, so an interrupted or failed run leaves nothing that looks whole):
@@ -14,6 +20,8 @@ renamed when complete, so an interrupted or failed run leaves nothing that looks
 
 from __future__ import annotations
 
+import math
+import shutil
 import sys
 import time
 from dataclasses import dataclass
@@ -100,6 +108,9 @@ def _truth_rows(step: TrafficStep) -> dict[str, list[Any]]:
     return cols
 
 
+DEFAULT_CHUNK_S = 30.0  # simulated seconds per chunk (memory vs. per-chunk overhead; outputs do not depend on it)
+
+
 @dataclass(frozen=True, kw_only=True)
 class RunResult:
     out_dir: Path
@@ -117,6 +128,35 @@ def _say(quiet: bool, msg: str) -> None:
         print(msg, file=sys.stderr, flush=True)
 
 
+def _fault_needs_whole_run(scenario: Scenario) -> str | None:
+    """Why this scenario's faults cannot be streamed bit-identically (None: they can).
+
+    ``v2v.faults`` draws a UWB / bearing fault's random numbers for the whole run at once
+    (after every GNSS draw, from one stream), and a cycle slip's "first epoch" is remembered
+    only within one call: such runs are processed as one chunk.
+    """
+    for f in scenario.faults:
+        if f.kind == "uwb_blunder" or (f.kind == "nonfinite" and f.sensor in ("uwb", "bearing")) or f.kind == "cycle_slip":
+            return f"fault {f.kind}"
+    return None
+
+
+@dataclass
+class _ClusterRun:
+    """The streaming state of one cluster: exchange, pending events / output epochs, one runner per solution."""
+
+    name: str
+    lead: str
+    members: list[str]
+    stream: Any  # pipeline.ExchangeStream
+    runners: list[Any]  # pipeline.SolutionRunner, one per solution
+    keys: list[str]
+    parts: list[Path]
+    events: list[Any]
+    out_times: list[float]  # output epochs not yet filtered
+    exchange: Any
+
+
 def run_scenario(
     scenario: Scenario,
     out_dir: Path,
@@ -125,15 +165,27 @@ def run_scenario(
     replay: bool = True,
     save_measurements: bool = False,
     base_dir: Path | None = None,
+    chunk_s: float | None = None,
 ) -> RunResult:
     """Run one scenario end to end and write its run folder. Returns the summary.
 
-    Stages (wall time of each is reported in ``summary.json`` under ``timing_s``):
-    traffic (SUMO) -> world geometry -> sensors (GNSS, UWB, bearing) -> V2V exchange ->
-    one EKF per (cluster, solution) on the same measurements -> metrics -> outputs.
+    The run is processed in chunks of ``chunk_s`` simulated seconds (default
+    :data:`DEFAULT_CHUNK_S`; ``math.inf`` = one chunk): SUMO advances a chunk, the sensors
+    synthesize it (their random streams and states continue across chunks), the V2V exchange
+    delivers it (messages in flight carry over), every solution's filter (one per cluster,
+    kept across chunks) consumes it, and its truth / epoch rows go to disk; then the chunk is
+    dropped, so memory does not grow with the run (apart from the small per-run outputs). The
+    outputs do not depend on ``chunk_s``. Runs with faults that draw random numbers for a
+    whole sensor stream at once, or with ``save_measurements``, are one chunk (see
+    :func:`_fault_needs_whole_run`).
+
+    Stage wall times (summed over chunks) are reported in ``summary.json`` under ``timing_s``.
     """
+    import pickle
+
     import pandas as pd
 
+    import v2v.pipeline as pipeline  # run_solution via the module: tools may wrap it (experiments/fault_campaign.py)
     from v2v.exchange import V2VExchange
     from v2v.metrics.summary import json_safe, paper_table, solution_statistics
     from v2v.pipeline import (
@@ -142,126 +194,89 @@ def run_scenario(
         STREAM_FAULTS,
         STREAM_GNSS,
         STREAM_UWB,
+        ExchangeStream,
+        SolutionRunner,
         build_bearing,
         build_filter,
         build_gnss,
         build_uwb,
         child_seeds,
-        exchange_stream,
-        run_solution,
     )
     from v2v.sensors.gnss.spp import spp_from_epoch
     from v2v.sensors.gnss.time import utc_to_gps_s
+    from v2v.sensors.uwb import concat_ranges
     from v2v.traffic.sumo import NetFiles, SumoSimulation
     from v2v.world.buildings import World, load_polygons
     from v2v.world.occlusion import OcclusionGeometry
 
     wall0 = time.perf_counter()
-    timing: dict[str, float] = {}
+    timing: dict[str, float] = dict.fromkeys(("traffic", "world", "gnss", "uwb", "bearing", "replay_static_truth",
+                                              "estimation", "metrics_io"), 0.0)
     net = resolve_network(scenario)
     seeds = child_seeds(scenario.seed)
     gps_start = float(utc_to_gps_s(scenario.start_utc))
     n_steps = int(round(scenario.duration_s / scenario.step_length_s))
+    chunk = DEFAULT_CHUNK_S if chunk_s is None else float(chunk_s)
+    if not chunk > 0.0:
+        raise UserError(f"chunk length must be > 0 s, got {chunk_s!r}", field="chunk_s", fix="give a positive number of seconds")
+    if save_measurements or _fault_needs_whole_run(scenario):
+        chunk = math.inf
     events_log: list[dict[str, Any]] = []
+    event_counts = {k.value: 0 for k in EventKind}
+    used = {s for sol in scenario.solutions for s in sol.sensors}
+    if save_measurements:  # a user saving measurements wants every enabled sensor's
+        used |= {name for name in ("uwb", "bearing") if getattr(scenario.sensors, name).enabled}
     with RunFolder(Path(out_dir)) as tmp:
         save_resolved(scenario, tmp / "scenario.resolved.toml")
+        parts_dir = tmp / ".parts"
+        parts_dir.mkdir()
 
-        # 1. traffic ------------------------------------------------------------------
-        t0 = time.perf_counter()
-        truth = ParquetStream(tmp / "truth.parquet")
-        files = NetFiles(net_path=net.net_path, poly_paths=net.poly_paths, route_edges=net.route_edges)
-        steps: list[TrafficStep] = []
-        with SumoSimulation(scenario, files, net.georef, seed=scenario.seed) as sim:
-            step = sim.snapshot()
-            steps.append(step)
-            truth.extend(_truth_rows(step))
-            events_log.extend(_event_rows(step))
-            vehicles = sim.cluster_vehicle_ids()
-            lanes, lane_widths = sim.lane_geometry()
-            with _progress(n_steps, quiet, f"SUMO {scenario.name}") as bar:
-                for _ in range(n_steps):
-                    step = sim.step()
-                    events_log.extend(_event_rows(step))
-                    if not step.vehicles:
-                        break  # every cluster vehicle has arrived
-                    steps.append(step)
-                    truth.extend(_truth_rows(step))
-                    bar.update(1)
-            stats = sim.stats
-        truth.close()
-        t_end = steps[-1].t_s
-        timing["traffic"] = time.perf_counter() - t0
-
-        # 2. world --------------------------------------------------------------------
         t0 = time.perf_counter()
         world = load_polygons(list(net.poly_paths)) if net.poly_paths else World()
         occlusion = OcclusionGeometry(world)
-        timing["world"] = time.perf_counter() - t0
+        timing["world"] += time.perf_counter() - t0
 
-        # 3. sensors ------------------------------------------------------------------
-        used = {s for sol in scenario.solutions for s in sol.sensors}
-        if save_measurements:  # a user saving measurements wants every enabled sensor's
-            used |= {name for name in ("uwb", "bearing") if getattr(scenario.sensors, name).enabled}
-        t0 = time.perf_counter()
-        _say(quiet, f"synthesizing measurements for {len(vehicles)} vehicles over {t_end:.1f} s ...")
-        gnss = build_gnss(scenario, gps_start, seeds[STREAM_GNSS], occlusion, net.georef, base_dir)
-        gnss_epochs: list[tuple[float, dict[str, GnssEpoch]]] = []
-        for st in steps:
-            for eps in gnss.feed(st):
-                if eps:
-                    t_e = next(iter(eps.values())).t_s
-                    gnss_epochs.append((t_e, eps))
-        timing["gnss"] = time.perf_counter() - t0
-        t0 = time.perf_counter()
-        uwb = None
-        if "uwb" in used:
-            network = build_uwb(scenario, vehicles, seeds[STREAM_UWB])
-            uwb = network.simulate(steps, np.random.default_rng(seeds[STREAM_UWB].spawn(2)[1]), occlusion=occlusion)
-        timing["uwb"] = time.perf_counter() - t0
-        t0 = time.perf_counter()
-        bearings = None
-        if "bearing" in used:
-            bearings = build_bearing(scenario).simulate(steps, np.random.default_rng(seeds[STREAM_BEARING]), occlusion=occlusion)
-        timing["bearing"] = time.perf_counter() - t0
-        # Output epochs: the GNSS grid as synthesized, before faults (so they continue through outages).
-        grid_times = [t for t, _ in gnss_epochs]
+        truth = ParquetStream(tmp / "truth.parquet", batch_rows=10_000)  # ~10 s of 10 vehicles at 10 Hz per row group
+        files = NetFiles(net_path=net.net_path, poly_paths=net.poly_paths, route_edges=net.route_edges)
+        logger = _make_logger(tmp, replay)
+        on_epoch = _epoch_logger(logger, net.georef) if replay else None
+        acc = _RunAccumulators()
         fault_log = None
+        frng = None
         if scenario.faults:
-            from v2v.faults import FaultLog, apply_bearing_faults, apply_gnss_faults, apply_uwb_faults
+            from v2v.faults import (
+                FaultLog,
+                apply_bearing_faults,
+                apply_gnss_faults,
+                apply_uwb_faults,
+                message_dropped,
+            )
 
             fault_log = FaultLog()
             frng = np.random.default_rng(seeds[STREAM_FAULTS])
-            gnss_epochs = apply_gnss_faults(gnss_epochs, list(scenario.faults), frng, fault_log)
-            uwb = apply_uwb_faults(uwb, list(scenario.faults), frng, fault_log)
-            bearings = apply_bearing_faults(bearings, list(scenario.faults), frng, fault_log)
-        if save_measurements:
+        measurements: list[Any] = []  # save_measurements (one chunk): (gnss epochs, uwb, bearings)
+        n_filters = len(scenario.clusters) * len(scenario.solutions)
+        with SumoSimulation(scenario, files, net.georef, seed=scenario.seed) as sim, logger:
             t0 = time.perf_counter()
-            from v2v.io.measurements import measurements_table
-
-            atomic_write_parquet(tmp / "measurements.parquet", measurements_table(gnss_epochs, uwb, bearings))
-            timing["measurements_io"] = time.perf_counter() - t0
-
-        # 4-5. exchange and estimation, per cluster -----------------------------------
-        truth_by_t = {round(st.t_s * 1e6): st for st in steps}
-
-        def truth_at(t: float) -> TrafficStep | None:
-            return truth_by_t.get(round(t * 1e6))
-
-        logger = _make_logger(tmp, replay)
-        t0 = time.perf_counter()
-        with logger:
+            step = sim.snapshot()
+            vehicles = sim.cluster_vehicle_ids()
+            lanes, lane_widths = sim.lane_geometry()
+            timing["traffic"] += time.perf_counter() - t0
             logger.log_world(lanes, lane_widths, world.buildings, world.foliage, net.georef)
-            _log_truth_and_links(logger, steps, uwb, bearings, gnss_epochs)
-            timing["replay_static_truth"] = time.perf_counter() - t0
-            records = []
-            updates: dict[str, pd.DataFrame] = {}
-            membership: dict[str, list[dict[str, Any]]] = {}
-            filter_counters: dict[str, dict[str, int]] = {}
-            t0 = time.perf_counter()
-            on_epoch = _epoch_logger(logger, net.georef) if replay else None
-            n_filters = len(scenario.clusters) * len(scenario.solutions)
-            _say(quiet or n_filters == 0, f"filtering: {len(scenario.solutions)} solution(s) x {len(scenario.clusters)} cluster(s) ...")
-            fbar = _progress(n_filters, quiet, "filters")
+            _say(quiet, f"{scenario.name}: {len(vehicles)} vehicles, {scenario.duration_s:.0f} s in chunks of "
+                        f"{chunk if math.isfinite(chunk) else scenario.duration_s:.0f} s ...")
+            _say(quiet or n_filters == 0, f"filtering: {len(scenario.solutions)} solution(s) x {len(scenario.clusters)} cluster(s)")
+
+            # sensors -------------------------------------------------------------------
+            gnss = build_gnss(scenario, gps_start, seeds[STREAM_GNSS], occlusion, net.georef, base_dir)
+            uwb_net = build_uwb(scenario, vehicles, seeds[STREAM_UWB]) if "uwb" in used else None
+            uwb_rng = np.random.default_rng(seeds[STREAM_UWB].spawn(2)[1]) if uwb_net is not None else None
+            uwb_stream = None
+            bearing_stream = (build_bearing(scenario).stream(np.random.default_rng(seeds[STREAM_BEARING]), occlusion)
+                              if "bearing" in used else None)
+
+            # exchange and filters, per cluster ---------------------------------------------
+            clusters: list[_ClusterRun] = []
             for ci, cluster in enumerate(scenario.clusters):
                 lead = f"{cluster.name}.{cluster.lead}"
                 members = [f"{cluster.name}.{i}" for i in range(cluster.vehicles)]
@@ -275,65 +290,191 @@ def run_scenario(
                         _s["x"] = res.position_ecef_m
                     return _s["x"]
 
-                cl_epochs = [(t, {v: e for v, e in eps.items() if v in members}) for t, eps in gnss_epochs]
-                output_times = [t for t in grid_times if (st := truth_at(t)) is not None and lead in st.vehicles]
                 dropped = None
                 if scenario.faults:
-                    from v2v.faults import message_dropped
+                    fault_list = list(scenario.faults)
 
-                    faults = list(scenario.faults)
-
-                    def dropped(sender: str, t: float, _f=faults) -> bool:
+                    def dropped(sender: str, t: float, _f=fault_list) -> bool:
                         return message_dropped(_f, sender, t)
 
-                events, _ = exchange_stream(cl_epochs, uwb, bearings, exch, lead_base, output_times, dropped)
                 bearing_vehicles = members if scenario.sensors.bearing.measuring == "all" else [
                     v for v in scenario.sensors.bearing.measuring if v in members]
                 uwb_pairs = _uwb_pairs(scenario, members)
-                for sol in scenario.solutions:
+                runners, keys, parts = [], [], []
+                for si, sol in enumerate(scenario.solutions):
                     ekf = build_filter(sol, lead, others, bearing_vehicles, uwb_pairs)
-                    rec = run_solution(sol, ekf, events, output_times, truth_at, lead, others, on_epoch=on_epoch)
-                    if rec.rows:
-                        df = pd.DataFrame(rec.rows)
-                        df.insert(1, "cluster", cluster.name)
-                        records.append(df)
-                    key = sol.name if len(scenario.clusters) == 1 else f"{cluster.name}/{sol.name}"
-                    updates[key] = pd.DataFrame(rec.updates)
+                    runners.append(SolutionRunner(sol, ekf, lead, others, on_epoch=on_epoch))
+                    keys.append(sol.name if len(scenario.clusters) == 1 else f"{cluster.name}/{sol.name}")
+                    parts.append(parts_dir / f"epochs_{ci}_{si}.pkl")
+                clusters.append(_ClusterRun(name=cluster.name, lead=lead, members=members,
+                                            stream=ExchangeStream(exch, lead_base, dropped), runners=runners, keys=keys,
+                                            parts=parts, events=[], out_times=[], exchange=exch))
+
+            window: dict[int, TrafficStep] = {}  # truth steps still needed (by round(t * 1e6))
+            replay_state = _ReplayState()
+            chunk_steps: list[TrafficStep] = []
+
+            def truth_at(t: float) -> TrafficStep | None:
+                return window.get(round(t * 1e6))
+
+            def process(final: bool) -> None:
+                nonlocal uwb_stream, chunk_steps
+                steps = chunk_steps
+                chunk_steps = []
+                # sensors
+                t0 = time.perf_counter()
+                epochs: list[tuple[float, dict[str, GnssEpoch]]] = []
+                for st in steps:
+                    for eps in gnss.feed(st):
+                        if eps:
+                            epochs.append((next(iter(eps.values())).t_s, eps))
+                timing["gnss"] += time.perf_counter() - t0
+                t0 = time.perf_counter()
+                uwb = None
+                if uwb_net is not None:
+                    if uwb_stream is None:
+                        t_first = steps[0].t_s if steps else 0.0
+                        t_end = steps[-1].t_s if final and steps else round(t_first + n_steps * scenario.step_length_s, 6)
+                        uwb_stream = uwb_net.stream(uwb_rng, occlusion=occlusion, t_start_s=t_first, t_end_s=t_end)
+                    parts_u = [uwb_stream.push(steps)]
+                    if final:
+                        parts_u.append(uwb_stream.finish())
+                    uwb = concat_ranges(parts_u)
+                timing["uwb"] += time.perf_counter() - t0
+                t0 = time.perf_counter()
+                bearings = bearing_stream.push(steps) if bearing_stream is not None else None
+                if final and bearing_stream is not None:
+                    bearing_stream.finish()
+                timing["bearing"] += time.perf_counter() - t0
+                grid_times = [t for t, _ in epochs]  # output epochs: the GNSS grid before faults
+                if fault_log is not None:
+                    epochs = apply_gnss_faults(epochs, list(scenario.faults), frng, fault_log)
+                    uwb = apply_uwb_faults(uwb, list(scenario.faults), frng, fault_log)
+                    bearings = apply_bearing_faults(bearings, list(scenario.faults), frng, fault_log)
+                if save_measurements:
+                    measurements.append((epochs, uwb, bearings))
+                acc.add_sensors(epochs, uwb, bearings)
+                # the measurements are known up to: the last step (GNSS, bearings), the UWB horizon
+                known = steps[-1].t_s if steps else -np.inf
+                if uwb_stream is not None and not final:
+                    known = min(known, uwb_stream.complete_until_s)
+                # replay: truth, links and sky up to the known horizon
+                t0 = time.perf_counter()
+                replay_state.add(logger, steps, uwb, bearings, epochs)
+                replay_state.flush(logger, np.inf if final else known)
+                timing["replay_static_truth"] += time.perf_counter() - t0
+                # exchange and filters
+                t0 = time.perf_counter()
+                for cl in clusters:
+                    for t, eps in epochs:
+                        cl.stream.add_gnss(t, {v: e for v, e in eps.items() if v in cl.members})
+                    cl.stream.add_uwb(uwb)
+                    cl.stream.add_bearings(bearings)
+                    for t in grid_times:
+                        st = truth_at(t)
+                        if st is not None and cl.lead in st.vehicles:
+                            cl.stream.add_output_time(t)
+                            cl.out_times.append(t)
+                    cl.events += cl.stream.advance(known, final=final)
+                    # filter the output epochs whose events are all delivered
+                    ready = len(cl.out_times) if final else _count_before(cl.out_times, cl.stream)
+                    times = cl.out_times[:ready]
+                    consumed = 0
+                    for runner, part in zip(cl.runners, cl.parts, strict=True):
+                        rec = pipeline.run_solution(runner.sol, runner.ekf, cl.events, times, truth_at, cl.lead,
+                                                    runner.vehicles, on_epoch=on_epoch, runner=runner)
+                        consumed = runner.consumed
+                        rows = rec.take_rows()
+                        if rows:
+                            with open(part, "ab") as f:
+                                pickle.dump(pd.DataFrame(rows), f, protocol=pickle.HIGHEST_PROTOCOL)
+                    del cl.events[:consumed]
+                    del cl.out_times[:ready]
+                timing["estimation"] += time.perf_counter() - t0
+                # forget the truth no cluster / the replay needs any more
+                need = min([cl.out_times[0] for cl in clusters if cl.out_times] + [replay_state.oldest()], default=np.inf)
+                for key in [k for k, st in window.items() if st.t_s < need - 1e-6]:
+                    del window[key]
+
+            def add_step(st: TrafficStep) -> None:
+                window[round(st.t_s * 1e6)] = st
+                chunk_steps.append(st)
+                truth.extend(_truth_rows(st))
+
+            t0 = time.perf_counter()
+            for e in _event_rows(step):
+                _log_event(e, events_log, event_counts)
+            add_step(step)
+            t_end = step.t_s
+            next_cut = step.t_s + chunk
+            with _progress(n_steps, quiet, f"SUMO {scenario.name}") as bar:
+                for _ in range(n_steps):
+                    step = sim.step()
+                    for e in _event_rows(step):
+                        _log_event(e, events_log, event_counts)
+                    if not step.vehicles:
+                        break  # every cluster vehicle has arrived
+                    add_step(step)
+                    t_end = step.t_s
+                    bar.update(1)
+                    if step.t_s >= next_cut - 1e-9:
+                        timing["traffic"] += time.perf_counter() - t0
+                        process(final=False)
+                        t0 = time.perf_counter()
+                        next_cut += chunk
+            stats = sim.stats
+            timing["traffic"] += time.perf_counter() - t0
+            process(final=True)
+            truth.close()
+            window.clear()
+            records_meta = []
+            membership: dict[str, list[dict[str, Any]]] = {}
+            filter_counters: dict[str, dict[str, int]] = {}
+            recs: dict[str, Any] = {}
+            for cl in clusters:
+                for runner, key, part in zip(cl.runners, cl.keys, cl.parts, strict=True):
+                    rec = runner.finish()
+                    recs[key] = rec
                     filter_counters[key] = rec.counters
                     if rec.membership:
                         membership[key] = [{"t_s": t, "vehicle": v, "change": c} for t, v, c in rec.membership]
-                    fbar.update(1)
-                exchange_stats = exch.stats
-            fbar.close()
-            timing["estimation"] = time.perf_counter() - t0
-        epochs = pd.concat(records, ignore_index=True) if records else pd.DataFrame()
-        # Memory: the whole-run inputs (SUMO steps, GNSS epochs, UWB/bearing records, the
-        # exchange's delivered events) are not needed by the metrics: reduce them to their
-        # summary numbers now and free them before the metrics build their tables.
-        n_gnss_epochs = len(gnss_epochs)
-        n_sats = [ep.n for _, eps in gnss_epochs for ep in eps.values()]
-        nlos = sum(int((~ep.los).sum()) for _, eps in gnss_epochs for ep in eps.values())
-        uwb_summary = _uwb_summary(uwb)
-        n_bearings = int(bearings.n) if bearings is not None else 0
-        records.clear()
-        steps.clear()
-        truth_by_t.clear()
-        gnss_epochs = cl_epochs = events = uwb = bearings = rec = ekf = None  # noqa: F841 (released)
+                    records_meta.append((cl.name, part))
+                exchange_stats = cl.exchange.stats
 
-        # 6. metrics and outputs -------------------------------------------------------
+        # metrics and outputs -------------------------------------------------------------
         t0 = time.perf_counter()
+        records = []
+        for cname, part in records_meta:
+            dfs = _read_pickles(part)
+            if dfs:
+                df = pd.concat(dfs, ignore_index=True) if len(dfs) > 1 else dfs[0]
+                df.insert(1, "cluster", cname)
+                records.append(df)
+        shutil.rmtree(parts_dir)
+        if save_measurements:  # one chunk (see above)
+            t1 = time.perf_counter()
+            from v2v.io.measurements import measurements_table
+
+            m_epochs, m_uwb, m_b = measurements[0] if measurements else ([], None, None)
+            atomic_write_parquet(tmp / "measurements.parquet", measurements_table(m_epochs, m_uwb, m_b))
+            measurements.clear()
+            timing["measurements_io"] = time.perf_counter() - t1
+        epochs_df = pd.concat(records, ignore_index=True) if records else pd.DataFrame()
+        records.clear()
         lane_records: list[dict[str, Any]] = []
-        if len(epochs):
-            atomic_write_parquet(tmp / "epochs.parquet", epochs)
-            sol_stats = solution_statistics(epochs, updates)
+        if len(epochs_df):
+            atomic_write_parquet(tmp / "epochs.parquet", epochs_df)
+            # per-update statistics from the compact logs, one kind of one solution at a time
+            meas = {key: rec.log.kind_statistics() for key, rec in recs.items()}
+            sol_stats = solution_statistics(epochs_df, {}, measurements=meas)
             from v2v.metrics.lane import lane_level_table
 
-            lane_records = lane_level_table(epochs, pd.read_parquet(tmp / "truth.parquet")).to_dict("records")
+            truth_cols = ["t_s", "vehicle", "cluster", "is_lead", "edge", "azimuth_rad"]  # what attach_truth reads
+            lane_records = lane_level_table(epochs_df, pd.read_parquet(tmp / "truth.parquet", columns=truth_cols)).to_dict("records")
         else:
             sol_stats = {}
         timing["metrics_io"] = time.perf_counter() - t0
         wall = time.perf_counter() - wall0
-        counts = {k.value: sum(1 for e in events_log if e["kind"] == k.value) for k in EventKind}
         summary: dict[str, Any] = {
             "v2v_version": __version__,
             "scenario": scenario.name,
@@ -348,16 +489,12 @@ def run_scenario(
             "vehicles": vehicles,
             "leads": [f"{c.name}.{c.lead}" for c in scenario.clusters],
             "solutions": [s.name for s in scenario.solutions],
-            "gnss": {
-                "epochs": n_gnss_epochs,
-                "satellites_tracked_mean": float(np.mean(n_sats)) if n_sats else 0.0,
-                "nlos_fraction": nlos / max(sum(n_sats), 1),
-            },
-            "uwb": uwb_summary,
-            "bearing": {"measurements": n_bearings},
+            "gnss": acc.gnss_summary(),
+            "uwb": acc.uwb_summary(),
+            "bearing": {"measurements": acc.n_bearings},
             "exchange": {"sent": exchange_stats.sent, "lost": exchange_stats.lost, "late": exchange_stats.late}
             if scenario.clusters else {},
-            "event_counts": counts,
+            "event_counts": event_counts,
             "faults_injected": fault_log.counts if fault_log is not None else {},
             "events": events_log[:1000],
             "truth_rows": truth.rows_written,
@@ -373,6 +510,82 @@ def run_scenario(
     return RunResult(out_dir=Path(out_dir), summary=summary)
 
 
+def _count_before(times: list[float], stream: Any) -> int:
+    """How many leading output epochs can be filtered: every event up to ``t + 1e-9`` is delivered."""
+    horizon = stream.exchange.processed_until_s - 2e-9  # later events have t_s >= this
+    n = 0
+    while n < len(times) and times[n] + 1e-9 < horizon:
+        n += 1
+    return n
+
+
+def _read_pickles(path: Path) -> list[Any]:
+    import pickle
+
+    out: list[Any] = []
+    if not path.exists():
+        return out
+    with open(path, "rb") as f:
+        while True:
+            try:
+                out.append(pickle.load(f))
+            except EOFError:
+                break
+    return out
+
+
+def _log_event(e: dict[str, Any], log: list[dict[str, Any]], counts: dict[str, int]) -> None:
+    counts[e["kind"]] = counts.get(e["kind"], 0) + 1
+    if len(log) < 1000:
+        log.append(e)
+
+
+class _RunAccumulators:
+    """The run's sensor summary numbers, kept as counts and compact arrays (not measurement objects)."""
+
+    def __init__(self) -> None:
+        self.n_epochs = 0
+        self.n_sats = 0
+        self.n_sat_obs = 0
+        self.nlos = 0
+        self.n_bearings = 0
+        self._uwb_err: list[np.ndarray] = []
+        self._uwb_los: list[np.ndarray] = []
+
+    def add_sensors(self, epochs, uwb, bearings) -> None:
+        self.n_epochs += len(epochs)
+        for _, eps in epochs:
+            for ep in eps.values():
+                self.n_sats += ep.n
+                self.n_sat_obs += 1
+                self.nlos += int((~ep.los).sum())
+        if uwb is not None and uwb.n:
+            self._uwb_err.append(uwb.range_m - uwb.true_range_m)
+            self._uwb_los.append(np.asarray(uwb.los, dtype=bool))
+        if bearings is not None:
+            self.n_bearings += int(bearings.n)
+
+    def gnss_summary(self) -> dict[str, Any]:
+        return {
+            "epochs": self.n_epochs,
+            "satellites_tracked_mean": float(np.float64(self.n_sats) / self.n_sat_obs) if self.n_sat_obs else 0.0,
+            "nlos_fraction": self.nlos / max(self.n_sats, 1),
+        }
+
+    def uwb_summary(self) -> dict[str, Any]:
+        if not self._uwb_err:
+            return {"ranges": 0}
+        err = np.concatenate(self._uwb_err)
+        nlos = ~np.concatenate(self._uwb_los)
+        return {
+            "ranges": int(err.size),
+            "nlos_fraction": float(nlos.mean()),
+            "error_mean_m": float(err.mean()),
+            "error_std_m": float(err.std()),
+            "nlos_error_mean_m": float(err[nlos].mean()) if nlos.any() else None,
+        }
+
+
 def _event_rows(step: TrafficStep) -> list[dict[str, Any]]:
     return [{"t_s": e.t_s, "kind": e.kind.value, "vehicle": e.vehicle_id, "detail": e.detail} for e in step.events]
 
@@ -386,20 +599,6 @@ def _uwb_pairs(scenario: Scenario, members: list[str]) -> list[tuple[str, str]]:
     return [(a, b) for a, b in sec.pairs if a in members and b in members]
 
 
-def _uwb_summary(uwb) -> dict[str, Any]:
-    if uwb is None or uwb.n == 0:
-        return {"ranges": 0}
-    err = uwb.range_m - uwb.true_range_m
-    nlos = ~uwb.los
-    return {
-        "ranges": int(uwb.n),
-        "nlos_fraction": float(nlos.mean()),
-        "error_mean_m": float(err.mean()),
-        "error_std_m": float(err.std()),
-        "nlos_error_mean_m": float(err[nlos].mean()) if nlos.any() else None,
-    }
-
-
 def _make_logger(folder: Path, replay: bool):
     if not replay:
         from v2v.viz.logger import NullLogger
@@ -410,19 +609,62 @@ def _make_logger(folder: Path, replay: bool):
     return RerunReplayLogger(folder / "replay.rrd")
 
 
-def _log_truth_and_links(logger, steps, uwb, bearings, gnss_epochs) -> None:
-    from v2v.viz.logger import NullLogger
+class _ReplayState:
+    """Truth, radio/bearing links and sky plots waiting to be logged to the replay, chunk by chunk."""
 
-    if isinstance(logger, NullLogger):
-        return
+    def __init__(self) -> None:
+        self.steps: list[TrafficStep] = []
+        self.uwb: list[Any] = []
+        self.bearings: list[Any] = []
+        self.sky: dict[int, dict[str, GnssEpoch]] = {}
+        self.prev = -np.inf
+
+    def add(self, logger, steps, uwb, bearings, epochs) -> None:
+        from v2v.viz.logger import NullLogger
+
+        if isinstance(logger, NullLogger):
+            return
+        self.steps += steps
+        if uwb is not None and uwb.n:
+            self.uwb.append(uwb)
+        if bearings is not None and bearings.n:
+            self.bearings.append(bearings)
+        self.sky.update({round(t * 1e6): eps for t, eps in epochs if abs(t - round(t)) < 1e-6})  # 1 Hz sky plots
+
+    def oldest(self) -> float:
+        return self.steps[0].t_s if self.steps else np.inf
+
+    def flush(self, logger, upto_s: float) -> None:
+        """Log the steps up to ``upto_s`` (every link measured up to then is known)."""
+        from v2v.pipeline import _concat_bearings
+        from v2v.sensors.uwb import concat_ranges
+
+        k = 0
+        while k < len(self.steps) and self.steps[k].t_s <= upto_s:
+            k += 1
+        if k == 0:
+            return
+        steps, self.steps = self.steps[:k], self.steps[k:]
+        uwb = concat_ranges(self.uwb) if self.uwb else None
+        bearings = _concat_bearings(self.bearings) if self.bearings else None
+        self.prev = _log_truth_and_links(logger, steps, uwb, bearings, self.sky, self.prev)
+        last = self.prev
+        from v2v.pipeline import _subset_bearings
+        from v2v.sensors.uwb import select_ranges
+
+        self.uwb = [select_ranges(uwb, uwb.t_s > last)] if uwb is not None else []
+        self.bearings = [_subset_bearings(bearings, np.flatnonzero(bearings.t_s > last))] if bearings is not None else []
+        self.sky = {key: v for key, v in self.sky.items() if key > round(last * 1e6)}
+
+
+def _log_truth_and_links(logger, steps, uwb, bearings, sky_every: dict[int, Any], prev: float = -np.inf) -> float:
+    """Log truth, links measured in (previous step, step] and the 1 Hz sky plots; returns the last step time."""
     # records in time order, so each step's window is a searchsorted slice (not a scan of the run)
     series = []
     for kind, meas in (("uwb", uwb), ("bearing", bearings)):
         if meas is not None and meas.n:
             order = np.argsort(meas.t_s, kind="stable")
             series.append((kind, meas, order, meas.t_s[order]))
-    sky_every = {round(t * 1e6): eps for t, eps in gnss_epochs if abs(t - round(t)) < 1e-6}  # 1 Hz sky plots
-    prev = -np.inf
     for st in steps:
         logger.log_truth(st.t_s, st)
         for kind, meas, order, tt in series:
@@ -437,6 +679,7 @@ def _log_truth_and_links(logger, steps, uwb, bearings, gnss_epochs) -> None:
             for v, ep in eps.items():
                 logger.log_satellites(st.t_s, v, ep.prn, ep.azimuth_rad, ep.elevation_rad, ep.los)
         prev = st.t_s
+    return prev
 
 
 def _epoch_logger(logger, georef: GeoReference):

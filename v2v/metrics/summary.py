@@ -12,10 +12,14 @@ from v2v.metrics.errors import chi2_band, consistency_summary, error_statistics
 NIS_DOF = 1  # every update is scalar
 
 
-def solution_statistics(epochs: pd.DataFrame, updates: dict[str, pd.DataFrame]) -> dict[str, Any]:
+def solution_statistics(epochs: pd.DataFrame, updates: dict[str, pd.DataFrame],
+                        measurements: dict[str, dict[str, Any]] | None = None) -> dict[str, Any]:
     """Statistics per solution and vehicle over the epochs where the vehicle is initialized.
 
     ``availability`` is the fraction of output epochs with an initialized estimate.
+    ``measurements``: per solution, the per-update statistics already reduced (e.g. by
+    :func:`update_kind_statistics` kind by kind from a streamed run's compact log); used
+    instead of ``updates`` for the solutions it names.
     """
     out: dict[str, Any] = {}
     for sol, g_sol in epochs.groupby("solution", sort=False):
@@ -40,9 +44,13 @@ def solution_statistics(epochs: pd.DataFrame, updates: dict[str, pd.DataFrame]) 
         if "lead_azimuth_err_rad" in g_sol:
             az = g_sol["lead_azimuth_err_rad"].dropna().to_numpy()
             sol_entry["lead_azimuth_err_deg"] = error_statistics(np.degrees(az))
-        u = updates.get(str(sol))
-        if u is not None and len(u):
-            sol_entry["measurements"] = _update_stats(u)
+        if measurements is not None and str(sol) in measurements:
+            if measurements[str(sol)]:
+                sol_entry["measurements"] = measurements[str(sol)]
+        else:
+            u = updates.get(str(sol))
+            if u is not None and len(u):
+                sol_entry["measurements"] = _update_stats(u)
         out[str(sol)] = sol_entry
     return out
 
@@ -78,23 +86,28 @@ def ambiguity_statistics(ok: pd.DataFrame) -> dict[str, Any]:
 
 def _update_stats(u: pd.DataFrame) -> dict[str, Any]:
     res: dict[str, Any] = {}
-    lo, hi = chi2_band(NIS_DOF)
     for kind, g in u.groupby("kind", sort=True):
-        acc = g["accepted"].to_numpy(bool)
-        faulty = g["faulty"].to_numpy(bool)
-        nis = g["nis"].to_numpy(float)
-        clean = ~faulty
-        res[str(kind)] = {
-            "used": int(acc.sum()),
-            "rejected": int((~acc).sum()),
-            "true_rejections": int((~acc & faulty).sum()),
-            "false_rejections": int((~acc & ~faulty).sum()),
-            "missed_faults": int((acc & faulty).sum()),
-            "faulty": int(faulty.sum()),
-            "nis_mean_clean": float(nis[clean].mean()) if clean.any() else float("nan"),
-            "nis_frac_in_band_clean": float(np.mean((nis[clean] >= lo) & (nis[clean] <= hi))) if clean.any() else float("nan"),
-        }
+        res[str(kind)] = update_kind_statistics(g["accepted"].to_numpy(bool), g["faulty"].to_numpy(bool),
+                                                g["nis"].to_numpy(float))
     return res
+
+
+def update_kind_statistics(acc: np.ndarray, faulty: np.ndarray, nis: np.ndarray) -> dict[str, Any]:
+    """Rejections and NIS of one measurement kind's updates (in update order): used / rejected,
+    true / false rejections and missed faults (the simulator knows which were faulty), NIS
+    mean and fraction inside the chi-square band over the clean updates."""
+    lo, hi = chi2_band(NIS_DOF)
+    clean = ~faulty
+    return {
+        "used": int(acc.sum()),
+        "rejected": int((~acc).sum()),
+        "true_rejections": int((~acc & faulty).sum()),
+        "false_rejections": int((~acc & ~faulty).sum()),
+        "missed_faults": int((acc & faulty).sum()),
+        "faulty": int(faulty.sum()),
+        "nis_mean_clean": float(nis[clean].mean()) if clean.any() else float("nan"),
+        "nis_frac_in_band_clean": float(np.mean((nis[clean] >= lo) & (nis[clean] <= hi))) if clean.any() else float("nan"),
+    }
 
 
 def paper_table(stats: dict[str, Any]) -> str:

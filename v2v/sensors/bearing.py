@@ -101,31 +101,71 @@ class BearingSensor:
         rng : random stream of this sensor.
         occlusion : object with ``links(p0_xyz_m, p1_xyz_m, vehicle_boxes, exclude)`` returning a
             ``blocked`` array (v2v.world.occlusion.OcclusionGeometry), or None for open space.
+
+        The same as one :class:`BearingStream` fed every step.
         """
-        steps = list(steps)
-        if not isinstance(self.measuring, str):
-            seen = {vid for st in steps for vid in st.vehicles}
-            missing = [v for v in self.measuring if v not in seen]
+        stream = self.stream(rng, occlusion)
+        out = stream.push(steps)
+        stream.finish()
+        return out
+
+    def stream(self, rng: np.random.Generator, occlusion: Any = None) -> BearingStream:
+        """A chunked synthesizer (see :class:`BearingStream`)."""
+        return BearingStream(self, rng, occlusion)
+
+
+class BearingStream:
+    """Bearings synthesized chunk by chunk: :meth:`push` the next SUMO steps, get their bearings.
+
+    The sensor is per step (rate ticks, azimuth-bias Gauss-Markov state and the random stream
+    continue across chunks), so the concatenated output is bit-identical to one
+    :meth:`BearingSensor.simulate` over the whole run. :meth:`finish` checks that every listed
+    measuring vehicle appeared.
+    """
+
+    def __init__(self, sensor: BearingSensor, rng: np.random.Generator, occlusion: Any = None):
+        self.sensor = sensor
+        self.rng = rng
+        self.occlusion = occlusion
+        self._last_tick: int | None = None
+        self._t0: float | None = None
+        self._bias: dict[str, tuple[float, float]] = {}  # vehicle -> (t_s, bias_rad)
+        self._seen: set[str] = set()
+        self.n = 0
+
+    def finish(self) -> None:
+        if not isinstance(self.sensor.measuring, str):
+            missing = [v for v in self.sensor.measuring if v not in self._seen]
             if missing:
                 raise UserError(
                     f"measuring vehicle(s) {missing} never appear in the traffic",
                     field="sensors.bearing.measuring",
-                    fix=f"use ids among {sorted(seen)}",
+                    fix=f"use ids among {sorted(self._seen)}",
                 )
-        cols: dict[str, list] = {k: [] for k in ("t", "a", "b", "beta", "beta_true", "az_rep", "az_true")}
-        last_tick = None
-        t0 = steps[0].t_s if steps else 0.0
-        bias: dict[str, tuple[float, float]] = {}  # vehicle -> (t_s, bias_rad)
+
+    def push(self, steps: Sequence[TrafficStep]) -> Bearings:
+        """Bearings of the given steps (the next ones of the run, in time order)."""
+        s = self.sensor
+        rng = self.rng
+        occlusion = self.occlusion
+        steps = list(steps)
         for st in steps:
-            if self.rate_hz is not None:
-                tick = math.floor((st.t_s - t0) * self.rate_hz + 1e-9)
-                if tick == last_tick:
+            self._seen.update(st.vehicles)
+        cols: dict[str, list] = {k: [] for k in ("t", "a", "b", "beta", "beta_true", "az_rep", "az_true")}
+        if self._t0 is None and steps:
+            self._t0 = steps[0].t_s
+        t0 = self._t0
+        bias = self._bias
+        for st in steps:
+            if s.rate_hz is not None:
+                tick = math.floor((st.t_s - t0) * s.rate_hz + 1e-9)
+                if tick == self._last_tick:
                     continue
-                last_tick = tick
+                self._last_tick = tick
             ids = sorted(st.vehicles)
             if len(ids) < 2:
                 continue
-            meas = ids if self.measuring == "all" else [v for v in self.measuring if v in st.vehicles]
+            meas = ids if s.measuring == "all" else [v for v in s.measuring if v in st.vehicles]
             if not meas:
                 continue
             # All (a, b) links of this step at once: a's own ENU frame for each a.
@@ -144,8 +184,8 @@ class BearingSensor:
             )
             az_true = np.array([st.vehicles[a].azimuth_rad for a in pa])
             beta_true = bearing_rad(d_enu, az_true)
-            ok = (range_m(np.zeros(3), d_enu) <= self.max_range_m) & (
-                np.abs(beta_true) <= 0.5 * self.field_of_view_rad + 1e-12
+            ok = (range_m(np.zeros(3), d_enu) <= s.max_range_m) & (
+                np.abs(beta_true) <= 0.5 * s.field_of_view_rad + 1e-12
             )
             if occlusion is not None and np.any(ok):
                 boxes, row = vehicle_boxes(st)
@@ -159,18 +199,18 @@ class BearingSensor:
             az_rep: dict[str, float] = {}
             for a in meas:
                 b_prev = bias.get(a)
-                if self.azimuth_bias_sigma_rad > 0.0:
+                if s.azimuth_bias_sigma_rad > 0.0:
                     if b_prev is None:
-                        bval = self.azimuth_bias_sigma_rad * rng.standard_normal()
+                        bval = s.azimuth_bias_sigma_rad * rng.standard_normal()
                     else:
-                        phi = math.exp(-(st.t_s - b_prev[0]) / self.azimuth_bias_tau_s)
-                        bval = phi * b_prev[1] + math.sqrt(1.0 - phi * phi) * self.azimuth_bias_sigma_rad * rng.standard_normal()
+                        phi = math.exp(-(st.t_s - b_prev[0]) / s.azimuth_bias_tau_s)
+                        bval = phi * b_prev[1] + math.sqrt(1.0 - phi * phi) * s.azimuth_bias_sigma_rad * rng.standard_normal()
                     bias[a] = (st.t_s, bval)
                 else:
                     bval = 0.0
-                w = self.azimuth_sigma_rad * rng.standard_normal()
+                w = s.azimuth_sigma_rad * rng.standard_normal()
                 az_rep[a] = (st.vehicles[a].azimuth_rad + bval + w) % (2.0 * math.pi)
-            noise = self.sigma_rad * rng.standard_normal(len(pa))
+            noise = s.sigma_rad * rng.standard_normal(len(pa))
             k = np.flatnonzero(ok)
             if k.size == 0:
                 continue
@@ -185,7 +225,7 @@ class BearingSensor:
         def cat(key: str) -> np.ndarray:
             return np.concatenate(cols[key]) if cols[key] else np.zeros(0)
 
-        return Bearings(
+        out = Bearings(
             t_s=cat("t"),
             a=tuple(cols["a"]),
             b=tuple(cols["b"]),
@@ -195,3 +235,5 @@ class BearingSensor:
             true_azimuth_rad=cat("az_true"),
             los=np.ones(len(cols["a"]), dtype=bool),
         )
+        self.n += out.n
+        return out

@@ -62,7 +62,7 @@ from __future__ import annotations
 
 import itertools
 import math
-from collections.abc import Iterable, Mapping, Sequence
+from collections.abc import Mapping, Sequence
 from dataclasses import dataclass, fields
 from pathlib import Path
 from typing import Any
@@ -389,14 +389,7 @@ def _offset_vectors(
     return enu, ecef
 
 
-def _tracks(
-    steps: Sequence[TrafficStep], vehicle_ids: Iterable[str], offsets: Mapping[str, F64]
-) -> dict[str, _Track]:
-    rows: dict[str, list] = {v: [] for v in vehicle_ids}
-    for st in steps:
-        for vid, vs in st.vehicles.items():
-            if vid in rows:
-                rows[vid].append(vs)
+def _tracks_from_states(rows: Mapping[str, list], offsets: Mapping[str, F64]) -> dict[str, _Track]:
     out: dict[str, _Track] = {}
     for vid, states in rows.items():
         if not states:
@@ -594,106 +587,22 @@ class UwbNetwork:
         Returns
         -------
         UwbRanges with ``errors_m`` keys :data:`ERROR_KEYS`; ``range_m = true_range_m + sum``.
+        The same as one :class:`UwbStream` over the whole run (``t_end_s`` = the last step).
         """
         steps = list(steps)
-        n_pairs = len(self.pairs)
-        children = rng.spawn(n_pairs + len(self.units))
-        pair_rngs = children[:n_pairs]
-        unit_rngs = dict(zip(self.units, children[n_pairs:], strict=True))
-        if not steps or n_pairs == 0:
+        if not steps:
+            rng.spawn(len(self.pairs) + len(self.units))
             return _empty_ranges()
-        t_steps = np.array([s.t_s for s in steps], dtype=float)
-        if np.any(np.diff(t_steps) <= 0):
-            raise UserError("traffic steps are not in increasing time", field="steps", fix="pass steps in time order")
-        max_gap_s = 2.0 * float(np.median(np.diff(t_steps))) if len(t_steps) > 1 else 0.0
-        tracks = _tracks(steps, self.units, self.antenna_offsets_body_m)
+        stream = self.stream(rng, occlusion=occlusion, t_start_s=steps[0].t_s, t_end_s=steps[-1].t_s)
+        parts = [stream.push(steps), stream.finish()]
+        return concat_ranges([p for p in parts if p.n])
 
-        # Per-unit bias random walk on the step grid (interpolated linearly between steps).
-        drift: dict[str, F64] = {}
-        dt = np.diff(t_steps)
-        for vid, unit in self.units.items():
-            q = unit.profile.bias_drift_m_per_sqrt_s / math.sqrt(2.0)
-            g = unit_rngs[vid]
-            inc = q * np.sqrt(dt) * g.standard_normal(dt.shape[0])
-            drift[vid] = np.concatenate([[0.0], np.cumsum(inc)])
-
-        parts: list[dict[str, Any]] = []
-        for (a, b), g in zip(self.pairs, pair_rngs, strict=True):
-            if a not in tracks or b not in tracks:
-                continue
-            rec = self._simulate_pair(a, b, g, tracks, t_steps, max_gap_s, drift)
-            if rec is not None:
-                parts.append(rec)
-        if not parts:
-            return _empty_ranges()
-        cat = {k: np.concatenate([p[k] for p in parts]) for k in parts[0] if k not in ("a", "b")}
-        a_ids = np.concatenate([p["a"] for p in parts])
-        b_ids = np.concatenate([p["b"] for p in parts])
-        keep = self._occlusion_filter(cat, a_ids, b_ids, steps, t_steps, occlusion)
-        return _finish(cat, a_ids, b_ids, keep, self)
-
-    def _simulate_pair(
-        self,
-        a: str,
-        b: str,
-        g: np.random.Generator,
-        tracks: dict[str, _Track],
-        t_steps: F64,
-        max_gap_s: float,
-        drift: dict[str, F64],
-    ) -> dict[str, Any] | None:
-        p = self.units[a].profile
-        t0, t1 = float(t_steps[0]), float(t_steps[-1])
-        t_true = _attempt_times(t0, t1, p.rate_hz, p.timing_shape, g)
-        n = t_true.shape[0]
-        if n == 0:
-            return None
-        # Draw every random number for every attempt (fixed consumption: reproducible streams).
-        lost = g.random(n) < p.packet_loss_probability
-        nlos_draw = g.random(n)
-        tag_err = p.time_tag_sigma_s * g.standard_normal(n)
-        z_noise = g.standard_normal(n)
-        z_mp = g.standard_normal(n)
-
-        ta, tb = tracks[a], tracks[b]
-        present = ta.valid(t_true, max_gap_s) & tb.valid(t_true, max_gap_s)
-        ea, xa = ta.at(t_true)
-        eb, xb = tb.at(t_true)
-        rho_true = np.linalg.norm(eb - ea, axis=1)
-        t_log = t_true + tag_err
-        ea_l, _ = ta.at(t_log)
-        eb_l, _ = tb.at(t_log)
-        rho_log = np.linalg.norm(eb_l - ea_l, axis=1)
-
-        # Multipath: Gauss-Markov over every attempt while both are present (§2.12).
-        mp = _gauss_markov(t_true, rho_true, z_mp, p.multipath_sigma_m, p.multipath_tau_s, p.multipath_decorrelation_m)
-        mp = np.clip(mp, -p.multipath_max_m, p.multipath_max_m)
-
-        model = self.pair_model(a, b)
-        bias = model.bias_m + np.interp(t_true, t_steps, drift[a]) - np.interp(t_true, t_steps, drift[b])
-        return {
-            "a": np.full(n, a, dtype=object),
-            "b": np.full(n, b, dtype=object),
-            "t_true": t_true,
-            "t_log": t_log,
-            "rho_true": rho_true,
-            "rho_log": rho_log,
-            "xyz_a": xa,
-            "xyz_b": xb,
-            "present": present & ~lost,
-            "nlos_draw": nlos_draw,
-            "nlos_p": np.full(n, p.nlos_detection_probability),
-            "z_noise": z_noise,
-            "multipath": mp,
-            "bias": bias,
-            "osc": np.full(n, model.oscillator_ppm * 1e-6),
-            "walk_k": np.full(n, model.walk_ppm * 1e-6),
-            "max_range": np.full(n, p.max_range_m),
-            "quant": np.full(n, p.quantization_m),
-            "noise_sigma": np.full(n, p.noise_sigma_m),
-            "noise_ref": np.full(n, p.noise_ref_range_m),
-            "noise_exp": np.full(n, p.noise_range_exponent),
-        }
+    def stream(
+        self, rng: np.random.Generator, *, occlusion: Any = None, t_start_s: float, t_end_s: float,
+        max_gap_s: float | None = None,
+    ) -> UwbStream:
+        """A chunked synthesizer of this network's ranges over ``[t_start_s, t_end_s]`` (see :class:`UwbStream`)."""
+        return UwbStream(self, rng, occlusion=occlusion, t_start_s=t_start_s, t_end_s=t_end_s, max_gap_s=max_gap_s)
 
     @staticmethod
     def _occlusion_filter(
@@ -716,9 +625,13 @@ class UwbNetwork:
             nearer_prev = np.abs(t_steps[k_prev] - cat["t_true"]) < np.abs(t_steps[k] - cat["t_true"])
             k = np.where(nearer_prev, k_prev, k)
             idx = np.flatnonzero(keep)
-            for s in np.unique(k[idx]):
-                sel = idx[k[idx] == s]
-                boxes, row = vehicle_boxes(steps[int(s)])
+            # group the attempts by step: one stable sort, not a scan of every attempt per step
+            # (that scan was O(steps x attempts): ~500 s of a 10-vehicle hour in one call)
+            idx = idx[np.argsort(k[idx], kind="stable")]
+            ks = k[idx]
+            bounds = np.flatnonzero(np.diff(ks)) + 1
+            for sel in np.split(idx, bounds) if idx.size else ():
+                boxes, row = vehicle_boxes(steps[int(k[sel[0]])])
                 exclude = np.array(
                     [[row.get(a, -1), row.get(b, -1)] for a, b in zip(a_ids[sel], b_ids[sel], strict=True)],
                     dtype=np.int64,
@@ -737,6 +650,274 @@ class UwbNetwork:
         path = cat["rho_true"] + nlos
         keep &= path <= cat["max_range"]
         return keep
+
+
+class _Clone:
+    """A copy of a generator's state: ``Generator(PCG64)`` positioned like ``g`` (optionally advanced)."""
+
+    @staticmethod
+    def of(g: np.random.Generator, advance: int = 0) -> np.random.Generator:
+        bg = type(g.bit_generator)()
+        bg.state = g.bit_generator.state
+        if advance:
+            bg.advance(advance)
+        return np.random.Generator(bg)
+
+
+_BLOCK = 4096
+
+
+class _PairDraws:
+    """Every random number of one pair's run, drawn lazily in time order.
+
+    The whole-run synthesis draws, from the pair's generator: the first attempt's phase
+    (1 uniform), the renewal intervals (``n_draw`` gammas, doubled until they cover the run),
+    then ``n`` uniforms (loss), ``n`` uniforms (NLOS detection), ``n`` normals (time tag),
+    ``n`` normals (noise), ``n`` normals (multipath), ``n`` = attempts in the run. A pre-pass
+    finds where each block starts in the bit stream (uniform doubles use one 64-bit output
+    each, so those blocks are jumps with ``PCG64.advance``; the gamma and normal blocks are
+    drawn once and discarded), then one cloned generator per block hands out the numbers of
+    each chunk: the draws, and so the ranges, are bit-identical to one whole-run call.
+    """
+
+    def __init__(self, g: np.random.Generator, rate_hz: float, shape: float, t0: float, t1: float):
+        span = t1 - t0
+        self.mean_dt = 1.0 / rate_hz
+        self.shape = shape
+        self.t1 = t1
+        n_exp = span * rate_hz
+        n_draw = int(n_exp + 6.0 * math.sqrt(n_exp + 1.0) + 10)
+        self.first = t0 + g.random() * self.mean_dt
+        while True:  # pre-pass over the renewal batches (as _attempt_times: t = first + cumsum)
+            start = _Clone.of(g)
+            carry, n, t_last = 0.0, 1 if self.first <= t1 else 0, self.first
+            left = n_draw
+            while left:
+                k = min(left, 65536)
+                iv = np.full(k, self.mean_dt) if math.isinf(shape) else g.gamma(shape, self.mean_dt / shape, size=k)
+                c = np.cumsum(np.concatenate([[carry], iv]))[1:]
+                carry = float(c[-1])
+                t = self.first + c
+                n += int(np.count_nonzero(t <= t1))
+                t_last = float(t[-1])
+                left -= k
+            if t_last > t1:
+                break
+            n_draw *= 2
+        self.n = n
+        self._times_g = start
+        self._carry = 0.0  # cumulative sum of the intervals drawn so far
+        self._buf = np.array([self.first])  # attempt times drawn but not handed out
+        self._made = 1  # attempt times drawn (first included)
+        self._lost = _Clone.of(g)
+        self._nlos = _Clone.of(g, n)
+        tag_g = _Clone.of(g, 2 * n)
+        self._tag = _Clone.of(tag_g)
+        self.max_tag_z = 0.0
+        for k in range(0, n, 65536):
+            self.max_tag_z = max(self.max_tag_z, float(np.max(np.abs(tag_g.standard_normal(min(65536, n - k))))))
+        self._noise = _Clone.of(tag_g)
+        for k in range(0, n, 65536):
+            tag_g.standard_normal(min(65536, n - k))
+        self._mp = tag_g
+        self.done = 0  # attempts handed out
+
+    def take(self, t_limit: float) -> tuple[F64, F64, F64, F64, F64, F64]:
+        """The next attempts with true time <= t_limit: times, loss and NLOS uniforms, tag/noise/multipath normals."""
+        while self._made < self.n and (self._buf.size == 0 or self._buf[-1] <= t_limit):
+            iv = np.full(_BLOCK, self.mean_dt) if math.isinf(self.shape) else self._times_g.gamma(
+                self.shape, self.mean_dt / self.shape, size=_BLOCK)
+            c = np.cumsum(np.concatenate([[self._carry], iv]))[1:]
+            self._carry = float(c[-1])
+            self._buf = np.concatenate([self._buf, self.first + c])
+            self._made += _BLOCK
+        k = min(int(np.searchsorted(self._buf, t_limit, side="right")), self.n - self.done)
+        t = self._buf[:k]
+        self._buf = self._buf[k:]
+        self.done += k
+        return (t, self._lost.random(k), self._nlos.random(k), self._tag.standard_normal(k),
+                self._noise.standard_normal(k), self._mp.standard_normal(k))
+
+
+class UwbStream:
+    """Chunked synthesis of a :class:`UwbNetwork`'s ranges: push the SUMO steps chunk by chunk.
+
+    Each :meth:`push` returns the ranges whose logged time tag can no longer be preceded by a
+    later one (``t_s <= complete_until_s``), sorted by logged time tag as one whole-run
+    :meth:`UwbNetwork.simulate` sorts them; :meth:`finish` returns the rest. Random draws
+    (:class:`_PairDraws`, per-unit bias walk on the step grid) and the multipath Gauss-Markov
+    state continue across chunks, so the concatenated output is bit-identical to one call over
+    the same ``[t_start_s, t_end_s]`` whatever the chunk length. The truth window kept is the
+    last few seconds of steps (plus each vehicle's last two states), so memory does not grow
+    with the run.
+
+    Exception: a vehicle that disappears from the traffic and later reappears (a SUMO teleport)
+    is extrapolated from its last states during its absence, where the whole-run synthesis
+    interpolated across the gap; its ranges there are absent either way, only the multipath
+    sequence after its return may differ.
+    """
+
+    def __init__(self, net: UwbNetwork, rng: np.random.Generator, *, occlusion: Any, t_start_s: float,
+                 t_end_s: float, max_gap_s: float | None = None):
+        self.net = net
+        self.occlusion = occlusion
+        n_pairs = len(net.pairs)
+        children = rng.spawn(n_pairs + len(net.units))
+        self._unit_rngs = dict(zip(net.units, children[n_pairs:], strict=True))
+        self.t0, self.t1 = float(t_start_s), float(t_end_s)
+        self._draws: list[_PairDraws] = []
+        for (a, _), g in zip(net.pairs, children[:n_pairs], strict=True):
+            p = net.units[a].profile
+            self._draws.append(_PairDraws(g, p.rate_hz, p.timing_shape, self.t0, self.t1))
+        self.max_tag_s = max((d.max_tag_z * net.units[a].profile.time_tag_sigma_s
+                              for d, (a, _) in zip(self._draws, net.pairs, strict=True)), default=0.0)
+        self.margin_s = 1.0 + 2.0 * self.max_tag_s  # truth kept before the first pending attempt
+        self._max_gap_s = max_gap_s
+        self._gm: list[tuple[float, float, float] | None] = [None] * n_pairs  # multipath (t, rho, x) carried
+        self._steps: list[TrafficStep] = []  # the truth window
+        self._drift: dict[str, list[float]] = {v: [] for v in net.units}
+        self._drift_started = False
+        self._last_states: dict[str, list] = {v: [] for v in net.units}  # (t, state) before the window
+        self._pending: list[dict[str, Any]] = []  # ranges synthesized, not yet complete in t_log order
+        self._synth_until = -np.inf  # attempts with t_true <= this are synthesized
+        self._seq = 0
+        self.complete_until_s = -np.inf
+
+    # -----------------------------------------------------------------------------------------
+    def push(self, steps: Sequence[TrafficStep]) -> UwbRanges:
+        """Add the next SUMO steps; return the ranges now complete (sorted by ``t_s``)."""
+        for st in steps:
+            if self._steps and st.t_s - self._steps[-1].t_s <= 0:
+                raise UserError("traffic steps are not in increasing time", field="steps", fix="pass steps in time order")
+            self._steps.append(st)
+        # Per-unit bias random walk on the step grid (whole-run: cumsum of q sqrt(dt) N(0,1)).
+        n_new = len(steps)
+        if n_new:
+            t_all = np.array([s.t_s for s in self._steps[-n_new - 1:]], dtype=float)
+            fresh = not self._drift_started
+            dt = np.diff(t_all) if not fresh else np.diff(t_all[-n_new:])
+            for vid, unit in self.net.units.items():
+                q = unit.profile.bias_drift_m_per_sqrt_s / math.sqrt(2.0)
+                inc = q * np.sqrt(dt) * self._unit_rngs[vid].standard_normal(dt.shape[0])
+                d = self._drift[vid]
+                start = [0.0] if fresh else [d[-1]]
+                d.extend(np.cumsum(np.concatenate([start, inc]))[0 if fresh else 1:].tolist())
+            self._drift_started = True
+        if not self._steps:
+            return _empty_ranges()
+        if self._max_gap_s is None and len(self._steps) > 1:
+            self._max_gap_s = 2.0 * float(np.median(np.diff([s.t_s for s in self._steps])))
+        t_last = self._steps[-1].t_s
+        limit = t_last - self.margin_s
+        out = self._advance(limit) if limit > self._synth_until else _empty_ranges()
+        return out
+
+    def finish(self) -> UwbRanges:
+        """Synthesize the remaining attempts (to ``t_end_s``) and return every pending range."""
+        out = self._advance(np.inf, final=True)
+        self._steps.clear()
+        return out
+
+    # -----------------------------------------------------------------------------------------
+    def _advance(self, limit: float, final: bool = False) -> UwbRanges:
+        steps = self._steps
+        t_steps = np.array([s.t_s for s in steps], dtype=float)
+        max_gap_s = self._max_gap_s if self._max_gap_s is not None else 0.0
+        tracks = self._tracks(steps)
+        drift = {v: np.asarray(d, dtype=float) for v, d in self._drift.items()}
+        parts: list[dict[str, Any]] = []
+        for j, ((a, b), dr) in enumerate(zip(self.net.pairs, self._draws, strict=True)):
+            drawn = dr.take(limit)
+            rec = self._pair_chunk(j, a, b, drawn, tracks, t_steps, max_gap_s, drift)
+            if rec is not None:
+                parts.append(rec)
+        self._synth_until = limit
+        if parts:
+            cat = {k: np.concatenate([p[k] for p in parts]) for k in parts[0] if k not in ("a", "b")}
+            a_ids = np.concatenate([p["a"] for p in parts])
+            b_ids = np.concatenate([p["b"] for p in parts])
+            keep = UwbNetwork._occlusion_filter(cat, a_ids, b_ids, steps, t_steps, self.occlusion)
+            self._pending.append(_finish_unsorted(cat, a_ids, b_ids, keep, self.net))
+        # Ranges whose t_log cannot be preceded by a later attempt's (t_true > limit).
+        horizon = np.inf if final else limit - self.max_tag_s - 1e-9
+        self.complete_until_s = horizon
+        out = self._emit(horizon)
+        # Drop the truth not needed by the next chunk (keep the vehicles' last two states).
+        if not final:
+            cut = limit - self.margin_s
+            i = int(np.searchsorted(t_steps, cut, side="left"))
+            for st in steps[:i]:
+                for vid, vs in st.vehicles.items():
+                    if vid in self._last_states:
+                        ls = self._last_states[vid]
+                        ls.append(vs)
+                        if len(ls) > 2:
+                            ls.pop(0)
+            del self._steps[:i]
+            for v in self._drift:
+                del self._drift[v][:i]
+        return out
+
+    def _tracks(self, steps: Sequence[TrafficStep]) -> dict[str, _Track]:
+        rows: dict[str, list] = {v: list(self._last_states[v]) for v in self.net.units}
+        for st in steps:
+            for vid, vs in st.vehicles.items():
+                if vid in rows:
+                    rows[vid].append(vs)
+        return _tracks_from_states(rows, self.net.antenna_offsets_body_m)
+
+    def _pair_chunk(self, j: int, a: str, b: str, drawn: tuple, tracks: dict[str, _Track], t_steps: F64,
+                    max_gap_s: float, drift: dict[str, F64]) -> dict[str, Any] | None:
+        t_true, u_lost, nlos_draw, z_tag, z_noise, z_mp = drawn
+        n = t_true.shape[0]
+        if n == 0 or a not in tracks or b not in tracks:
+            return None
+        p = self.net.units[a].profile
+        lost = u_lost < p.packet_loss_probability
+        tag_err = p.time_tag_sigma_s * z_tag
+        ta, tb = tracks[a], tracks[b]
+        present = ta.valid(t_true, max_gap_s) & tb.valid(t_true, max_gap_s)
+        ea, xa = ta.at(t_true)
+        eb, xb = tb.at(t_true)
+        rho_true = np.linalg.norm(eb - ea, axis=1)
+        t_log = t_true + tag_err
+        ea_l, _ = ta.at(t_log)
+        eb_l, _ = tb.at(t_log)
+        rho_log = np.linalg.norm(eb_l - ea_l, axis=1)
+        mp, self._gm[j] = _gauss_markov_cont(t_true, rho_true, z_mp, p.multipath_sigma_m, p.multipath_tau_s,
+                                            p.multipath_decorrelation_m, self._gm[j])
+        mp = np.clip(mp, -p.multipath_max_m, p.multipath_max_m)
+        model = self.net.pair_model(a, b)
+        bias = model.bias_m + np.interp(t_true, t_steps, drift[a]) - np.interp(t_true, t_steps, drift[b])
+        first = self._draws[j].done - n
+        return {
+            "a": np.full(n, a, dtype=object), "b": np.full(n, b, dtype=object),
+            "pair": np.full(n, j, dtype=np.int64), "attempt": np.arange(first, first + n, dtype=np.int64),
+            "t_true": t_true, "t_log": t_log, "rho_true": rho_true, "rho_log": rho_log, "xyz_a": xa, "xyz_b": xb,
+            "present": present & ~lost, "nlos_draw": nlos_draw, "nlos_p": np.full(n, p.nlos_detection_probability),
+            "z_noise": z_noise, "multipath": mp, "bias": bias,
+            "osc": np.full(n, model.oscillator_ppm * 1e-6), "walk_k": np.full(n, model.walk_ppm * 1e-6),
+            "max_range": np.full(n, p.max_range_m), "quant": np.full(n, p.quantization_m),
+            "noise_sigma": np.full(n, p.noise_sigma_m), "noise_ref": np.full(n, p.noise_ref_range_m),
+            "noise_exp": np.full(n, p.noise_range_exponent),
+        }
+
+    def _emit(self, horizon: float) -> UwbRanges:
+        if not self._pending:
+            return _empty_ranges()
+        c = {k: np.concatenate([p[k] for p in self._pending]) for k in self._pending[0]}
+        # The whole-run order: stable sort by t_log of the pair-major concatenation.
+        order = np.lexsort((c["attempt"], c["pair"], c["t_log"]))
+        c = {k: v[order] for k, v in c.items()}
+        k = int(np.searchsorted(c["t_log"], horizon, side="right"))
+        rest = {key: v[k:] for key, v in c.items()}
+        self._pending = [rest] if rest["t_log"].size else []
+        o = {key: v[:k] for key, v in c.items()}
+        return UwbRanges(
+            t_s=o["t_log"], true_t_s=o["t_true"], a=tuple(str(x) for x in o["a"]), b=tuple(str(x) for x in o["b"]),
+            range_m=o["range"], true_range_m=o["rho_log"], los=~o["blocked"],
+            errors_m={key: o["err_" + key] for key in ERROR_KEYS},
+        )
 
 
 def _attempt_times(t0: float, t1: float, rate_hz: float, shape: float, g: np.random.Generator) -> F64:
@@ -774,11 +955,34 @@ def _gauss_markov(t: F64, rho: F64, z: F64, sigma: float, tau_s: float, decorr_m
     return x
 
 
-def _finish(
+def _gauss_markov_cont(t: F64, rho: F64, z: F64, sigma: float, tau_s: float, decorr_m: float,
+                       prev: tuple[float, float, float] | None) -> tuple[F64, tuple[float, float, float] | None]:
+    """:func:`_gauss_markov` continued from ``prev = (t, rho, x)`` of the previous chunk's last sample.
+
+    Returns the samples and the state to carry; the samples equal the whole-run recursion's.
+    """
+    if sigma == 0.0 or t.shape[0] == 0:
+        return np.zeros_like(t), prev
+    if prev is None:
+        x = _gauss_markov(t, rho, z, sigma, tau_s, decorr_m)
+    else:
+        tt = np.concatenate([[prev[0]], t])
+        rr = np.concatenate([[prev[1]], rho])
+        phi = np.exp(-np.diff(tt) / tau_s - np.abs(np.diff(rr)) / decorr_m)
+        w = np.sqrt(1.0 - phi * phi) * sigma
+        x = np.empty_like(t)
+        xp = prev[2]
+        for k in range(t.shape[0]):
+            xp = phi[k] * xp + w[k] * z[k]
+            x[k] = xp
+    return x, (float(t[-1]), float(rho[-1]), float(x[-1]))
+
+
+def _finish_unsorted(
     cat: dict[str, F64], a_ids: NDArray[Any], b_ids: NDArray[Any], keep: NDArray[np.bool_], net: UwbNetwork
-) -> UwbRanges:
+) -> dict[str, Any]:
+    """The kept attempts' outputs, column by column (elementwise; sorted later by :class:`UwbStream`)."""
     c = {k: v[keep] for k, v in cat.items()}
-    a_k, b_k = a_ids[keep], b_ids[keep]
     nlos = c["nlos"]
     path = c["rho_true"] + nlos
     scale = c["osc"] * path
@@ -800,16 +1004,27 @@ def _finish(
     }
     # Quantization absorbs the last floating-point rounding so that the sum is exact to ~1e-15 m.
     errors["quantization"] = out - (c["rho_log"] + sum(errors.values()))
-    order = np.argsort(c["t_log"], kind="stable")
+    res: dict[str, Any] = {
+        "t_log": c["t_log"], "t_true": c["t_true"], "a": a_ids[keep], "b": b_ids[keep], "range": out,
+        "rho_log": c["rho_log"], "blocked": c["blocked"], "pair": c["pair"], "attempt": c["attempt"],
+    }
+    res.update({"err_" + k: errors[k] for k in ERROR_KEYS})
+    return res
+
+
+def concat_ranges(parts: Sequence[UwbRanges]) -> UwbRanges:
+    """One :class:`UwbRanges` from consecutive chunks (in the given order)."""
+    parts = [p for p in parts if p.n]
+    if not parts:
+        return _empty_ranges()
+    if len(parts) == 1:
+        return parts[0]
     return UwbRanges(
-        t_s=c["t_log"][order],
-        true_t_s=c["t_true"][order],
-        a=tuple(str(x) for x in a_k[order]),
-        b=tuple(str(x) for x in b_k[order]),
-        range_m=out[order],
-        true_range_m=c["rho_log"][order],
-        los=~c["blocked"][order],
-        errors_m={k: errors[k][order] for k in ERROR_KEYS},
+        t_s=np.concatenate([p.t_s for p in parts]), true_t_s=np.concatenate([p.true_t_s for p in parts]),
+        a=tuple(x for p in parts for x in p.a), b=tuple(x for p in parts for x in p.b),
+        range_m=np.concatenate([p.range_m for p in parts]), true_range_m=np.concatenate([p.true_range_m for p in parts]),
+        los=np.concatenate([p.los for p in parts]),
+        errors_m={k: np.concatenate([p.errors_m[k] for p in parts]) for k in ERROR_KEYS},
     )
 
 
