@@ -11,7 +11,6 @@ from pathlib import Path
 
 import pandas as pd
 import pytest
-
 from expkit import assert_png, load_experiment
 
 pytestmark = pytest.mark.sumo
