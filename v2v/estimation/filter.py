@@ -743,36 +743,29 @@ class ClusterFilterBase(ABC):
 
     def _pseudorange_sequence(self, v: str, rows: models.SdPseudorangeRows, z: F64, order: NDArray[np.int64],
                               excluded: NDArray[np.bool_], prns: NDArray, r_var: float) -> list[UpdateInfo]:
-        """Engine hook (default: one Python scalar update per pseudorange): ``rows`` in
-        ``order``, each re-linearized at the current state; ``excluded`` ones reported as
-        rejected. Same records as the loop of :meth:`_sd_pseudoranges` (which records the
-        tests in the NIS window afterwards)."""
-        out = []
-        zl = z.tolist()
-        prn_l = prns.tolist()
-        for o in order.tolist():
-            row = rows.row(self._get_x(), o)
-            if excluded[o]:
-                info = self._excluded(KIND_SD_PR, (v,), row, zl[o], r_var, prn_l[o])
-            else:
-                info = self._scalar(KIND_SD_PR, (v,), row, zl[o], r_var, prn=prn_l[o])
-            if info is not None:
-                out.append(info)
-        return out
+        """Engine hook (default: :meth:`_row_sequence`). Same records as the loop of
+        :meth:`_sd_pseudoranges` (which records the tests in the NIS window afterwards)."""
+        return self._row_sequence(KIND_SD_PR, v, rows, z, order, excluded, prns, r_var)
 
     def _doppler_sequence(self, v: str, rows: models.SdDopplerRows, z: F64, order: NDArray[np.int64],
                           excluded: NDArray[np.bool_], prns: NDArray, r_var: float) -> list[UpdateInfo]:
-        """Engine hook (default: one Python scalar update per Doppler): ``rows`` in ``order``,
-        each re-linearized at the current state; ``excluded`` ones reported as rejected."""
+        """Engine hook (default: :meth:`_row_sequence`)."""
+        return self._row_sequence(KIND_SD_DOPPLER, v, rows, z, order, excluded, prns, r_var)
+
+    def _row_sequence(self, kind: str, v: str, rows: models.SdPseudorangeRows | models.SdDopplerRows, z: F64,
+                      order: NDArray[np.int64], excluded: NDArray[np.bool_], prns: NDArray,
+                      r_var: float) -> list[UpdateInfo]:
+        """One Python scalar update per measurement of one vehicle: ``rows`` in ``order``, each
+        re-linearized at the current state; ``excluded`` ones reported as rejected."""
         out = []
         zl = z.tolist()
         prn_l = prns.tolist()
         for o in order.tolist():
             row = rows.row(self._get_x(), o)
             if excluded[o]:
-                info = self._excluded(KIND_SD_DOPPLER, (v,), row, zl[o], r_var, prn_l[o])
+                info = self._excluded(kind, (v,), row, zl[o], r_var, prn_l[o])
             else:
-                info = self._scalar(KIND_SD_DOPPLER, (v,), row, zl[o], r_var, prn=prn_l[o])
+                info = self._scalar(kind, (v,), row, zl[o], r_var, prn=prn_l[o])
             if info is not None:
                 out.append(info)
         return out
