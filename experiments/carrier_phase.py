@@ -11,7 +11,10 @@ Three parts, each run with every seed given (one run folder per part and seed un
    the integers), time to first fix, along/across errors.
 2. **Degraded sky** (MacGougan (2009) chapter 4: "a degraded GPS signal environment created
    artificially by excluding GPS satellites ... using elevation masking": a 40 deg mask left
-   4 satellites): ``open_highway`` with only the ``--keep`` highest satellites (a
+   4 satellites): ``open_highway``, three cars in lanes 0, 2, 1 departing 0.5 s apart (so
+   that each sees the others' radios from different directions, as the thesis's rover saw its
+   UWB stations; in line, UWB constrains only the along-track direction), with only the
+   ``--keep`` highest satellites (a
    ``satellites_lost`` fault; the equivalent mask angle is reported), either from the start
    (time to first fix, fix rate) or after 60 s of full-sky initialization, followed by a slip
    of every satellite of both followers (their ambiguities must be found again). GPS-phase against GPS-phase+UWB: fix rate and
@@ -265,12 +268,13 @@ def main(argv: list[str] | None = None) -> int:
     ap.add_argument("--out", required=True, type=Path)
     ap.add_argument("--seeds", type=int, nargs="+", default=[1, 2, 3])
     ap.add_argument("--uwb-profile", default="tdc", choices=["tdc", "mssi", "ideal"])
-    ap.add_argument("--uwb-sigma-m", type=float, default=0.1,
-                    help="filter's UWB sigma with bias/scale states (radio noise + unmodelled multipath)")
+    ap.add_argument("--uwb-sigma-m", type=float, default=0.03,
+                    help="filter's UWB sigma with bias/scale states (TDC radio: 1-3 cm, MacGougan 2009 sec. 2.11)")
     ap.add_argument("--keep", type=int, default=4,
                     help="degraded sky: satellites kept (the highest; thesis ch. 4: a 40 deg mask left 4)")
-    ap.add_argument("--lanes", default="[0]", help="degraded sky: the cluster's lanes (TOML list), e.g. [0, 1, 2]")
-    ap.add_argument("--time-gap-s", type=float, default=1.5, help="degraded sky: departure gap between the cars")
+    ap.add_argument("--lanes", default="[0, 2, 1]",
+                    help="degraded sky: the cluster's lanes (TOML list; [0] = in line: UWB sees along-track only)")
+    ap.add_argument("--time-gap-s", type=float, default=0.5, help="degraded sky: departure gap between the cars")
     ap.add_argument("--parts", nargs="+", default=["init_drive", "degraded", "slips"],
                     choices=["init_drive", "degraded", "slips"])
     ap.add_argument("--quick", action="store_true", help="one seed, shorter runs (smoke test)")
