@@ -236,10 +236,12 @@ def _timeline(folder: Path, path: Path) -> None:
     codes = {"float": 0, "partial": 1, "fixed": 2}
     for k, sol in enumerate(sols):
         g = e[(e["solution"] == sol) & (e["vehicle"] == v)]
-        axes[0].semilogy(g["t_s"], np.hypot(g["along_err_m"], g["across_err_m"]).clip(lower=1e-3), lw=0.8, label=sol)
+        color = f"C{k}"  # the same colour for a solution in both panels
+        axes[0].semilogy(g["t_s"], np.hypot(g["along_err_m"], g["across_err_m"]).clip(lower=1e-3), lw=0.8,
+                         label=sol, color=color)
         if g["phase_state"].notna().any():
             st = g["phase_state"].map(codes)
-            axes[1].plot(g["t_s"], st + 0.08 * k, ".", ms=1.5, label=sol)
+            axes[1].plot(g["t_s"], st + 0.08 * k, ".", ms=1.5, label=sol, color=color)
     t_open = e.loc[(e["segment"] == "canyon") & (e["vehicle"] == v), "t_s"].min()
     for ax in axes:
         ax.axvline(t_open, color="k", lw=0.8, ls="--")
