@@ -236,7 +236,7 @@ def run_scenario(
         occlusion = OcclusionGeometry(world)
         timing["world"] += time.perf_counter() - t0
 
-        truth = ParquetStream(tmp / "truth.parquet", batch_rows=10_000)  # ~10 s of 10 vehicles at 10 Hz per row group
+        truth = ParquetStream(tmp / "truth.parquet", batch_rows=10_000)  # also flushed at every chunk
         files = NetFiles(net_path=net.net_path, poly_paths=net.poly_paths, route_edges=net.route_edges)
         logger = _make_logger(tmp, replay)
         on_epoch = _epoch_logger(logger, net.georef) if replay else None
@@ -420,6 +420,7 @@ def run_scenario(
                     if step.t_s >= next_cut - 1e-9:
                         timing["traffic"] += time.perf_counter() - t0
                         process(final=False)
+                        truth.flush()  # one row group per chunk: memory O(chunk), not O(10 000 rows)
                         t0 = time.perf_counter()
                         next_cut += chunk
             stats = sim.stats
