@@ -467,6 +467,17 @@ def _excluded_s(P, Q, kq, idx, val, nnz, r_var):
 
 
 @njit(**_JIT)
+def _update_or_exclude(x, P, Q, kq, idx, val, nnz, nu, r_var, gate_k, excluded):
+    """One measurement of a GNSS batch: an ``excluded`` one (left out by the screen) is only
+    reported, ``(S, EXCLUDED or NONFINITE, kq)`` with x, P untouched; any other goes through
+    :func:`lazy_scalar_update` with the innovation test. Returns ``(S, status, kq)``."""
+    if excluded:
+        s = _excluded_s(P, Q, kq, idx, val, nnz, r_var)
+        return s, (EXCLUDED if (math.isfinite(nu) and math.isfinite(s) and s > 0.0) else NONFINITE), kq
+    return lazy_scalar_update(x, P, Q, kq, idx, val, nnz, nu, r_var, gate_k, True)
+
+
+@njit(**_JIT)
 def sd_doppler_batch(x, P, base, base_vel, rot, ps, vs, idrift, sv, svv, rate_lead, z, order, excluded,
                      r_var, gate_k):
     """One vehicle's SD pseudorange-rate updates in ``order`` (models.SdDopplerRows.row).
@@ -512,12 +523,7 @@ def sd_doppler_batch(x, P, base, base_vel, rot, ps, vs, idrift, sv, svv, rate_le
             val[3 + i] = -(rot[i, 0] * u[0] + rot[i, 1] * u[1] + rot[i, 2] * u[2])
         val[6] = 1.0
         nu = z[o] - h
-        if excluded[o]:
-            s = _excluded_s(P, Q, kq, idx, val, 7, r_var)
-            out_nu[k], out_s[k] = nu, s
-            out_st[k] = EXCLUDED if (math.isfinite(nu) and math.isfinite(s) and s > 0.0) else NONFINITE
-            continue
-        s, st, kq = lazy_scalar_update(x, P, Q, kq, idx, val, 7, nu, r_var, gate_k, True)
+        s, st, kq = _update_or_exclude(x, P, Q, kq, idx, val, 7, nu, r_var, gate_k, excluded[o])
         out_nu[k], out_s[k], out_st[k] = nu, s, st
     kq = lazy_flush(P, Q, kq)
     return out_nu, out_s, out_st
@@ -554,12 +560,7 @@ def sd_pseudorange_batch(x, P, base, rot, ps, iclk, sv, rho_lead, z, order, excl
             val[i] = -(rot[i, 0] * u0 + rot[i, 1] * u1 + rot[i, 2] * u2)
         val[3] = 1.0
         nu = z[o] - h
-        if excluded[o]:
-            s = _excluded_s(P, Q, kq, idx, val, 4, r_var)
-            out_nu[k], out_s[k] = nu, s
-            out_st[k] = EXCLUDED if (math.isfinite(nu) and math.isfinite(s) and s > 0.0) else NONFINITE
-            continue
-        s, st, kq = lazy_scalar_update(x, P, Q, kq, idx, val, 4, nu, r_var, gate_k, True)
+        s, st, kq = _update_or_exclude(x, P, Q, kq, idx, val, 4, nu, r_var, gate_k, excluded[o])
         out_nu[k], out_s[k], out_st[k] = nu, s, st
     kq = lazy_flush(P, Q, kq)
     return out_nu, out_s, out_st
