@@ -111,14 +111,19 @@ def update_kind_statistics(acc: np.ndarray, faulty: np.ndarray, nis: np.ndarray)
 
 
 def paper_table(stats: dict[str, Any]) -> str:
-    """Along/across mean and std per solution and vehicle (Petovello et al. tables 3-8), metres."""
-    lines = [f"{'solution':24s} {'vehicle':8s} {'along mean':>10s} {'along std':>9s} {'across mean':>11s} {'across std':>10s} {'avail':>6s}"]
+    """Along/across mean and std per solution and vehicle (Petovello et al. tables 3-8), metres;
+    with carrier-phase solutions also the fix rate and the wrong-fix rate (``ambiguity``)."""
+    phase = any("ambiguity" in e for s in stats.values() for e in s["vehicles"].values())
+    head = f"{'solution':24s} {'vehicle':8s} {'along mean':>10s} {'along std':>9s} {'across mean':>11s} {'across std':>10s} {'avail':>6s}"
+    lines = [head + (f" {'fix':>5s} {'wrong':>6s}" if phase else "")]
     for sol, s in stats.items():
         for veh, e in s["vehicles"].items():
             a, c = e["along"], e["across"]
-            lines.append(
-                f"{sol:24s} {veh:8s} {a['mean']:10.3f} {a['std']:9.3f} {c['mean']:11.3f} {c['std']:10.3f} {e['availability']:6.2f}"
-            )
+            line = f"{sol:24s} {veh:8s} {a['mean']:10.3f} {a['std']:9.3f} {c['mean']:11.3f} {c['std']:10.3f} {e['availability']:6.2f}"
+            amb = e.get("ambiguity")
+            if amb is not None:
+                line += f" {amb['fix_rate']:5.2f} {amb['wrong_fix_rate']:6.3f}"
+            lines.append(line)
     return "\n".join(lines)
 
 
