@@ -80,6 +80,13 @@ import numpy as np
 import pandas as pd
 from scipy.stats import binom, chi2, norm
 
+from v2v.estimation.faultsim import (
+    blunder_trials,
+    sim_layout,
+    uwb_blunder_trials,
+    with_pr_offset,
+)
+
 SOLUTIONS = ('solutions=[{name="GPS", sensors=["gnss"]}, '
              '{name="GPS+UWB+Bearing", sensors=["gnss", "uwb", "bearing"]}]')
 SOLUTIONS_UWB = ('solutions=[{name="GPS", sensors=["gnss"]}, '
@@ -87,8 +94,6 @@ SOLUTIONS_UWB = ('solutions=[{name="GPS", sensors=["gnss"]}, '
                  '{name="GPS+UWB+Bearing+UWBstates", sensors=["gnss", "uwb", "bearing"], uwb_error_states=true}]')
 LEAD = "c1.0"
 NON_LEAD = ("c1.1", "c1.2")
-CLOCK_JUMP_M = 299_792.458  # 1 ms of receiver clock
-BLUNDER_SIZES = (4.0, 5.0, 6.0)  # innovation sigmas
 
 # kind -> (fault table entry without start_s, measurement type column, update kind)
 FAULTS: dict[str, tuple[str, str, str]] = {
@@ -120,105 +125,13 @@ ALPHA = 0.001
 
 
 # ================================================================ A. filter level (model = world)
-def _sim_layout(n: int):
-    from v2v.estimation.layout import StateLayout
-    from v2v.estimation.simulate import vehicle_ids
-
-    return StateLayout.build(lead="lead", vehicles=vehicle_ids(n)[1:])
-
-
-def _with_pr(gnss: dict, v: str, add_m) -> dict:
-    out = dict(gnss)
-    out[v] = replace(gnss[v], pseudorange_m=gnss[v].pseudorange_m + add_m)
-    return out
-
-
-def blunder_trials(n_per_size: int, seed: int) -> tuple[dict[float, list[bool]], int, int]:
-    """Blunder detection and false alarms where the filter's model is the world.
-
-    The main filter runs on clean data (truth from the filter's own process model); at every
-    epoch after 3 s of convergence a copy gets one blunder of b sqrt(S) on the lowest-elevation
-    pseudorange of v1 (last in the update order, so its S is the one of the clean update).
-    Returns ({b: detected per trial}, clean tests, clean rejections).
-    """
-    from v2v.estimation.filter import KIND_SD_PR, ClusterEkf, FilterConfig
-    from v2v.estimation.simulate import SimScenario, simulate
-
-    cfg = FilterConfig()
-    n_ep = 30 + n_per_size * len(BLUNDER_SIZES)
-    scn = SimScenario(n_vehicles=3, duration_s=(n_ep - 1) * 0.1, uwb=False, bearing_vehicles=(), truth="process")
-    eps = simulate(scn, cfg, np.random.default_rng(seed))
-    ekf = ClusterEkf(_sim_layout(3), cfg)
-    det: dict[float, list[bool]] = {b: [] for b in BLUNDER_SIZES}
-    n_clean = n_rej = 0
-    for k, ep in enumerate(eps):
-        if k:
-            ekf.predict(scn.dt_s)
-        trial = copy.deepcopy(ekf) if k >= 30 else None
-        prs = [i for i in ekf.update_gnss(ep.gnss, ep.lead_base_ecef_m) if i.kind == KIND_SD_PR]
-        if trial is None:
-            continue
-        n_clean += len(prs)
-        n_rej += sum(not i.accepted for i in prs)
-        g = ep.gnss["v1"]
-        prn = int(g.prn[np.argmin(g.elevation_rad)])
-        s = next(i.variance for i in prs if i.vehicles == ("v1",) and i.prn == prn)
-        b = BLUNDER_SIZES[(k - 30) % len(BLUNDER_SIZES)]
-        out = trial.update_gnss(_with_pr(ep.gnss, "v1", np.where(g.prn == prn, b * np.sqrt(s), 0.0)),
-                                ep.lead_base_ecef_m)
-        det[b].append(not next(i.accepted for i in out if i.vehicles == ("v1",) and i.prn == prn))
-    return det, n_clean, n_rej
-
-
-def uwb_blunder_trials(n_trials: int, b: float, seed: int) -> list[bool]:
-    """As :func:`blunder_trials` for UWB ranges (filter sigma 0.5 m = world): the last range of
-    each epoch (its S equals the clean update's) of a copy of the filter gets b sqrt(S)."""
-    from v2v.estimation.filter import KIND_UWB, ClusterEkf, FilterConfig
-    from v2v.estimation.simulate import SimScenario, simulate
-
-    cfg = FilterConfig()
-    scn = SimScenario(n_vehicles=3, duration_s=(30 + n_trials - 1) * 0.1, bearing_vehicles=(), truth="process")
-    eps = simulate(scn, cfg, np.random.default_rng(seed))
-    ekf = ClusterEkf(_sim_layout(3), cfg)
-    hits = []
-    for k, ep in enumerate(eps):
-        if k:
-            ekf.predict(scn.dt_s)
-        trial = copy.deepcopy(ekf) if k >= 30 else None
-        u = [i for i in ekf.update_epoch(gnss=ep.gnss, lead_base_ecef_m=ep.lead_base_ecef_m, uwb=ep.uwb)
-             if i.kind == KIND_UWB]
-        if trial is None or not u:
-            continue
-        r = ep.uwb.range_m.copy()
-        r[-1] += b * np.sqrt(u[-1].variance)
-        out = trial.update_epoch(gnss=ep.gnss, lead_base_ecef_m=ep.lead_base_ecef_m, uwb=replace(ep.uwb, range_m=r))
-        hits.append(not [i for i in out if i.kind == KIND_UWB][-1].accepted)
-    return hits
-
-
 def uwb_bias_step(seed: int, bias_m: float = 1.0, t_step_s: float = 15.0) -> dict[str, float]:
-    """A replaced UWB radio in the model world: every range involving v1 + ``bias_m`` from
-    ``t_step_s``, filter without UWB error states. Returns the UWB rejection rate and NIS mean
-    of v1's ranges in the 5 s after the step, and v1's mean position NEES before / after."""
-    from v2v.estimation.filter import KIND_UWB, ClusterEkf, FilterConfig
-    from v2v.estimation.simulate import SimScenario, simulate
+    """A replaced UWB radio in the model world (:func:`v2v.estimation.faultsim.uwb_bias_step_run`):
+    the UWB rejection rate and NIS mean of v1's ranges in the 5 s after the step, and v1's mean
+    position NEES before / after."""
+    from v2v.estimation.faultsim import uwb_bias_step_run
 
-    cfg = FilterConfig()
-    scn = SimScenario(n_vehicles=3, duration_s=2.0 * t_step_s, bearing_vehicles=(), truth="process")
-    eps = simulate(scn, cfg, np.random.default_rng(seed))
-    ekf = ClusterEkf(_sim_layout(3), cfg)
-    rec = []
-    for k, ep in enumerate(eps):
-        if k:
-            ekf.predict(scn.dt_s)
-        u = ep.uwb
-        if ep.t_s >= t_step_s - 1e-9:
-            u = replace(u, range_m=u.range_m + bias_m * np.array(["v1" in (a, b) for a, b in zip(u.a, u.b, strict=True)]))
-        infos = ekf.update_epoch(gnss=ep.gnss, lead_base_ecef_m=ep.lead_base_ecef_m, uwb=u)
-        sl = ekf.layout.position("v1")
-        e = ekf.x[sl] - ep.rel_state["v1"][:3]
-        rec.append((ep.t_s, [i for i in infos if i.kind == KIND_UWB and "v1" in i.vehicles],
-                    float(e @ np.linalg.solve(ekf.P[sl, sl], e))))
+    rec = uwb_bias_step_run(seed, bias_m=bias_m, t_step_s=t_step_s)
     after = [i for t, us, _ in rec if t_step_s - 1e-9 <= t < t_step_s + 5.0 for i in us]
     before = [i for t, us, _ in rec if t_step_s - 10.0 <= t < t_step_s for i in us]
     return {"rej": float(np.mean([not i.accepted for i in after])), "nis_before": float(np.mean([i.nis for i in before])),
@@ -229,24 +142,15 @@ def uwb_bias_step(seed: int, bias_m: float = 1.0, t_step_s: float = 15.0) -> dic
 
 def _sim_run(seed: int, duration_s: float, *, outage_s: tuple[float, float] | None = None,
              jump_at_s: float | None = None, corrupt_at_s: float | None = None) -> list[dict[str, Any]]:
-    """One simulate.py run (3 vehicles, GNSS + UWB + bearings) with a fault; per-epoch log of v1."""
-    from v2v.estimation.filter import KIND_SD_PR, ClusterEkf, FilterConfig
-    from v2v.estimation.simulate import SimScenario, simulate
+    """One simulate.py run (3 vehicles, GNSS + UWB + bearings) with a fault
+    (:func:`v2v.estimation.faultsim.fault_run`); per-epoch log of v1."""
+    from v2v.estimation.faultsim import fault_run
+    from v2v.estimation.filter import KIND_SD_PR
+    from v2v.estimation.simulate import SimScenario
 
-    cfg = FilterConfig()
     scn = SimScenario(n_vehicles=3, duration_s=duration_s, gnss_outage_s=outage_s)
-    eps = simulate(scn, cfg, np.random.default_rng(seed))
-    ekf = ClusterEkf(_sim_layout(3), cfg)
     log = []
-    for k, ep in enumerate(eps):
-        if k:
-            ekf.predict(scn.dt_s)
-        if corrupt_at_s is not None and abs(ep.t_s - corrupt_at_s) < 1e-6:
-            ekf._get_x()[ekf.layout.position("v1").start] += 50.0  # the engine's live state
-        gnss = ep.gnss
-        if gnss is not None and jump_at_s is not None and ep.t_s >= jump_at_s - 1e-9:
-            gnss = _with_pr(gnss, "v1", CLOCK_JUMP_M)
-        infos = ekf.update_epoch(gnss=gnss, lead_base_ecef_m=ep.lead_base_ecef_m, uwb=ep.uwb, bearings=ep.bearings)
+    for ep, ekf, infos in fault_run(scn, seed, jump_at_s=jump_at_s, corrupt_at_s=corrupt_at_s):
         sl = ekf.layout.position("v1")
         ready = ekf.is_initialized("v1")
         e = ekf.x[sl] - ep.rel_state["v1"][:3]
@@ -324,7 +228,7 @@ def filter_level_rows(n_per_size: int, seed: int = 8) -> list[dict[str, Any]]:
         detected="y" if np.isfinite(t_reset) else "n", latency_s=t_reset - 10.0, recovery_s=rec)
 
     k = float(norm.isf(ALPHA / 2.0))
-    hits = uwb_blunder_trials(n_per_size, 5.0, seed=5)
+    hits = uwb_blunder_trials(n_per_size, 5.0, seed=5)[0]
     p = float(norm.sf(k - 5.0) + norm.cdf(-k - 5.0))
     lo, hi = binom.interval(0.99, len(hits), p)
     row("uwb_blunder 5 innov. sigma", f"P_D = {p:.4f}, 99 % binomial [{lo / len(hits):.4f}, {hi / len(hits):.4f}]",
@@ -351,7 +255,7 @@ def two_blunders_check(seed: int) -> tuple[bool, str]:
     cfg = FilterConfig()
     scn = SimScenario(n_vehicles=3, duration_s=6.0, uwb=False, bearing_vehicles=())
     eps = simulate(scn, cfg, np.random.default_rng(seed))
-    ekf = ClusterEkf(_sim_layout(3), cfg)
+    ekf = ClusterEkf(sim_layout(3), cfg)
     for k, ep in enumerate(eps[:-1]):
         if k:
             ekf.predict(scn.dt_s)
@@ -360,7 +264,7 @@ def two_blunders_check(seed: int) -> tuple[bool, str]:
     ekf.predict(scn.dt_s)
     g = ep.gnss["v1"]
     trial = copy.deepcopy(ekf)
-    infos = trial.update_gnss(_with_pr(ep.gnss, "v1", np.where(np.isin(g.prn, [2, 3]), 60.0, 0.0)), ep.lead_base_ecef_m)
+    infos = trial.update_gnss(with_pr_offset(ep.gnss, "v1", np.where(np.isin(g.prn, [2, 3]), 60.0, 0.0)), ep.lead_base_ecef_m)
     v1 = {i.prn: i for i in infos if i.kind == KIND_SD_PR and i.vehicles == ("v1",)}
     excluded = sum(not v1[p].accepted for p in (2, 3))
     sl = trial.layout.position("v1")

@@ -22,15 +22,16 @@ import numpy as np
 import pytest
 from scipy.stats import binom, chi2, norm
 
-from v2v.estimation.filter import KIND_SD_PR, KIND_UWB, ClusterEkf, FilterConfig
-from v2v.estimation.layout import StateLayout
-from v2v.estimation.simulate import SimScenario, simulate, vehicle_ids
-
-CLOCK_JUMP_M = 299_792.458  # 1 ms of receiver clock
-
-
-def _layout(n: int) -> StateLayout:
-    return StateLayout.build(lead="lead", vehicles=vehicle_ids(n)[1:])
+from v2v.estimation.faultsim import (
+    blunder_trials,
+    fault_run,
+    sim_layout,
+    uwb_bias_step_run,
+    uwb_blunder_trials,
+    with_pr_offset,
+)
+from v2v.estimation.filter import KIND_SD_PR, ClusterEkf, FilterConfig
+from v2v.estimation.simulate import SimScenario, simulate
 
 
 def _assert_spd(P: np.ndarray) -> None:
@@ -38,10 +39,8 @@ def _assert_spd(P: np.ndarray) -> None:
     np.linalg.cholesky(P)  # raises if not positive definite
 
 
-def _with_pr(gnss: dict, v: str, add_m) -> dict:
-    out = dict(gnss)
-    out[v] = replace(gnss[v], pseudorange_m=gnss[v].pseudorange_m + add_m)
-    return out
+def _spd(ekf: ClusterEkf) -> None:
+    _assert_spd(ekf.P)
 
 
 def _subset(ep, mask: np.ndarray):
@@ -59,41 +58,6 @@ def _nees(ekf: ClusterEkf, ep, v: str) -> float:
     return float(e @ np.linalg.solve(ekf.P[sl, sl], e))
 
 
-def _blunder_trials(n_trials_per_size: int, seed: int):
-    """Main filter on clean data; at every epoch after convergence, a copy gets one blunder of
-    b sqrt(S) on the lowest-elevation pseudorange of v1 (last in the update order, so its S
-    is the same as in the clean update). Returns (detections per b, clean tests, clean rejections)."""
-    cfg = FilterConfig()
-    sizes = (4.0, 5.0, 6.0)
-    n_ep = 30 + n_trials_per_size * len(sizes)
-    # truth drawn from the filter's own process model: with the "kinematic" truth (rigid
-    # formation) the filter's 10 m/s velocity GM is conservative and the rates are off by
-    # ~1 % (measured 0.749 / 0.967 / 0.9953 over 3000 trials each)
-    scn = SimScenario(n_vehicles=3, duration_s=(n_ep - 1) * 0.1, uwb=False, bearing_vehicles=(), truth="process")
-    eps = simulate(scn, cfg, np.random.default_rng(seed))
-    ekf = ClusterEkf(_layout(3), cfg)
-    det = {b: [] for b in sizes}
-    n_clean = n_rej = 0
-    for k, ep in enumerate(eps):
-        if k:
-            ekf.predict(scn.dt_s)
-        trial = copy.deepcopy(ekf) if k >= 30 else None
-        infos = ekf.update_gnss(ep.gnss, ep.lead_base_ecef_m)
-        _assert_spd(ekf.P)
-        prs = [i for i in infos if i.kind == KIND_SD_PR]
-        if k >= 30:
-            n_clean += len(prs)
-            n_rej += sum(not i.accepted for i in prs)
-            g = ep.gnss["v1"]
-            prn = int(g.prn[np.argmin(g.elevation_rad)])
-            s = next(i.variance for i in prs if i.vehicles == ("v1",) and i.prn == prn)
-            b = sizes[(k - 30) % len(sizes)]
-            bad = _with_pr(ep.gnss, "v1", np.where(g.prn == prn, b * np.sqrt(s), 0.0))
-            out = trial.update_gnss(bad, ep.lead_base_ecef_m)
-            det[b].append(not next(i.accepted for i in out if i.vehicles == ("v1",) and i.prn == prn))
-    return det, n_clean, n_rej
-
-
 def _check_rates(det, n_clean, n_rej, k):
     for b, hits in det.items():
         p = norm.sf(k - b) + norm.cdf(-k - b)
@@ -108,33 +72,24 @@ def test_blunder_detection_and_false_alarm_rates():
     """Measured with 3000 trials per size (slow test below): 0.764 / 0.956 / 0.9963 and a false-
     alarm rate of 144 / 144 000 = 0.0010. 300 trials per size: 99 % binomial intervals of 0.761 / 0.956 / 0.9966 are about
     +-0.064 / +-0.031 / [0.987, 1]; ~14 000 clean tests: 14 +- 11 rejections."""
-    det, n_clean, n_rej = _blunder_trials(300, seed=7)
+    det, n_clean, n_rej = blunder_trials(300, seed=7, check=_spd)
     _check_rates(det, n_clean, n_rej, FilterConfig().gate_k)
 
 
 @pytest.mark.slow
 def test_blunder_detection_and_false_alarm_rates_long():
-    det, n_clean, n_rej = _blunder_trials(3000, seed=8)
+    det, n_clean, n_rej = blunder_trials(3000, seed=8, check=_spd)
     _check_rates(det, n_clean, n_rej, FilterConfig().gate_k)
 
 
 def _run(scn: SimScenario, seed: int, cfg: FilterConfig | None = None, jump_at_s: float | None = None,
          corrupt_at_s: float | None = None):
-    """Run with a 1 ms clock jump of v1 and/or a +50 m east state corruption of v1; per-epoch log."""
-    cfg = cfg or FilterConfig()
-    eps = simulate(scn, cfg, np.random.default_rng(seed))
-    ekf = ClusterEkf(_layout(scn.n_vehicles), cfg)
+    """Run with a 1 ms clock jump of v1 and/or a +50 m east state corruption of v1
+    (:func:`v2v.estimation.faultsim.fault_run`); per-epoch log."""
     log = []
-    for k, ep in enumerate(eps):
-        if k:
-            ekf.predict(scn.dt_s)
-        if corrupt_at_s is not None and abs(ep.t_s - corrupt_at_s) < 1e-6:
-            ekf._get_x()[ekf.layout.position("v1").start] += 50.0  # the engine's live state
-        gnss = ep.gnss
-        if gnss is not None and jump_at_s is not None and ep.t_s >= jump_at_s - 1e-9:
-            gnss = _with_pr(gnss, "v1", CLOCK_JUMP_M)
-        infos = ekf.update_epoch(gnss=gnss, lead_base_ecef_m=ep.lead_base_ecef_m, uwb=ep.uwb, bearings=ep.bearings)
-        _assert_spd(ekf.P)
+    ekf = None
+    for ep, ekf, infos in fault_run(scn, seed, cfg=cfg, jump_at_s=jump_at_s, corrupt_at_s=corrupt_at_s,
+                                    check=_spd):
         sl = ekf.layout.position("v1")
         log.append({
             "t": ep.t_s, "ready": ekf.is_initialized("v1"),
@@ -206,7 +161,7 @@ def test_two_blunders_excluded_and_integrity_flag():
     cfg = FilterConfig()
     scn = SimScenario(n_vehicles=3, duration_s=6.0, uwb=False, bearing_vehicles=())
     eps = simulate(scn, cfg, np.random.default_rng(21))
-    ekf = ClusterEkf(_layout(3), cfg)
+    ekf = ClusterEkf(sim_layout(3), cfg)
     for k, ep in enumerate(eps[:-1]):
         if k:
             ekf.predict(scn.dt_s)
@@ -217,7 +172,7 @@ def test_two_blunders_excluded_and_integrity_flag():
     bad_prns = np.array([2, 3])  # az 80 / 150 deg: separable (two low SVs close in azimuth may not be)
     before = ekf.counters.get("excluded_screened", 0)
     trial = copy.deepcopy(ekf)
-    infos = trial.update_gnss(_with_pr(ep.gnss, "v1", np.where(np.isin(g.prn, bad_prns), 60.0, 0.0)),
+    infos = trial.update_gnss(with_pr_offset(ep.gnss, "v1", np.where(np.isin(g.prn, bad_prns), 60.0, 0.0)),
                               ep.lead_base_ecef_m)
     v1 = {i.prn: i for i in infos if i.kind == KIND_SD_PR and i.vehicles == ("v1",)}
     assert not any(v1[int(p)].accepted for p in bad_prns)
@@ -236,39 +191,11 @@ def test_two_blunders_excluded_and_integrity_flag():
     assert trial.integrity_available["v2"]
 
 
-def _uwb_blunder_trials(n_trials: int, b: float, seed: int) -> tuple[list[bool], int, int]:
-    """As :func:`_blunder_trials` for UWB ranges (sigma 0.5 m): the last range of each epoch
-    (its S equals the clean update's) of a copy gets b sqrt(S)."""
-    cfg = FilterConfig()
-    scn = SimScenario(n_vehicles=3, duration_s=(30 + n_trials - 1) * 0.1, bearing_vehicles=(), truth="process")
-    eps = simulate(scn, cfg, np.random.default_rng(seed))
-    ekf = ClusterEkf(_layout(3), cfg)
-    hits, n_clean, n_rej = [], 0, 0
-    for k, ep in enumerate(eps):
-        if k:
-            ekf.predict(scn.dt_s)
-        trial = copy.deepcopy(ekf) if k >= 30 else None
-        infos = ekf.update_epoch(gnss=ep.gnss, lead_base_ecef_m=ep.lead_base_ecef_m, uwb=ep.uwb)
-        _assert_spd(ekf.P)
-        if trial is None:
-            continue
-        u = [i for i in infos if i.kind == KIND_UWB]
-        n_clean += len(u)
-        n_rej += sum(not i.accepted for i in u)
-        j = ep.uwb.n - 1
-        assert u and u[-1].vehicles == (ep.uwb.a[j], ep.uwb.b[j])
-        r = ep.uwb.range_m.copy()
-        r[j] += b * np.sqrt(u[-1].variance)
-        out = trial.update_epoch(gnss=ep.gnss, lead_base_ecef_m=ep.lead_base_ecef_m, uwb=replace(ep.uwb, range_m=r))
-        hits.append(not [i for i in out if i.kind == KIND_UWB][-1].accepted)
-    return hits, n_clean, n_rej
-
-
 def test_uwb_blunder_detection_rate():
     """5 innovation-sigma UWB blunders: P_D = P(|N(5, 1)| > 3.29) = 0.956; 300 trials, 99 %
     binomial interval [0.923, 0.983] (measured 0.967). Clean UWB tests of the same run: 900,
     expected 0.9 rejections; <= 5 is the 99.8 % Poisson quantile."""
-    hits, n_clean, n_rej = _uwb_blunder_trials(300, 5.0, seed=5)
+    hits, n_clean, n_rej = uwb_blunder_trials(300, 5.0, seed=5, check=_spd)
     k = FilterConfig().gate_k
     p = norm.sf(k - 5.0) + norm.cdf(-k - 5.0)
     lo, hi = binom.interval(0.99, len(hits), p)
@@ -286,18 +213,7 @@ def test_uwb_bias_step_without_uwb_states_is_not_detected_but_biases_the_baselin
     5-15 s: one run's NEES is strongly time-correlated, the 5-seed mean is 2.9). This is the documented limitation (issue 8): without UWB
     error states such faults are undetected."""
     cfg = FilterConfig()
-    scn = SimScenario(n_vehicles=3, duration_s=30.0, bearing_vehicles=(), truth="process")
-    eps = simulate(scn, cfg, np.random.default_rng(6))
-    ekf = ClusterEkf(_layout(3), cfg)
-    rec = []
-    for k, ep in enumerate(eps):
-        if k:
-            ekf.predict(scn.dt_s)
-        u = ep.uwb
-        if ep.t_s >= 15.0 - 1e-9:
-            u = replace(u, range_m=u.range_m + 1.0 * np.array(["v1" in (a, b) for a, b in zip(u.a, u.b, strict=True)]))
-        infos = ekf.update_epoch(gnss=ep.gnss, lead_base_ecef_m=ep.lead_base_ecef_m, uwb=u)
-        rec.append((ep.t_s, [i for i in infos if i.kind == KIND_UWB and "v1" in i.vehicles], _nees(ekf, ep, "v1")))
+    rec = uwb_bias_step_run(6, bias_m=1.0, t_step_s=15.0)  # 30 s, the filter's model world
     after = [i for t, us, _ in rec if 15.0 - 1e-9 <= t < 20.0 for i in us]
     rej = sum(not i.accepted for i in after)
     assert rej <= binom.ppf(0.99, len(after), norm.sf(cfg.gate_k - 2.0) + norm.cdf(-cfg.gate_k - 2.0))
