@@ -84,3 +84,43 @@ def test_engines_agree_ten_vehicle_benchmark_cluster():
         np.testing.assert_array_less(np.abs(xp - xr), 1e-9 * (np.abs(xr) + sd) + 1e-300)
         np.testing.assert_array_less(np.abs(pp - pr), 1e-9 * (np.abs(pr) + np.outer(sd, sd)) + 1e-300)
     assert prod.counters == ref.counters
+
+
+def test_uwb_event_runs_agree_with_one_event_at_a_time():
+    """A streamed run feeds UWB ranges as one event per time tag (TDMA: 3 Hz x all pairs)
+    and the production engine processes a run of them in one kernel call
+    (ClusterEkf.update_uwb_events: predict, update, predict, ...). Checked against (a) the
+    same engine one event at a time (predict + update_uwb): the same kernels in the same
+    order, so *equal*; (b) the reference engine (plain Python + filterpy) to the 1e-9 of the
+    module docstring. With UWB bias/scale states and active bounds (constraint records)."""
+    from v2v.sensors.uwb import select_ranges
+
+    cfg = FilterConfig(uwb_bias_bounds_m=(-0.1, 0.1), uwb_scale_bounds=(-0.001, 0.001))
+    scn = SimScenario(n_vehicles=4, duration_s=3.0, turn_rate_rps=0.08, bearing_vehicles=("lead", "v1"),
+                      uwb_state_pairs=(("lead", "v1"), ("v2", "v3")), uwb_bias_m=0.3, uwb_scale=0.004)
+    lay = StateLayout.build(lead="lead", vehicles=vehicle_ids(4)[1:], azimuth_vehicles=("lead", "v1"),
+                            uwb_pairs=(("lead", "v1"), ("v2", "v3")), azimuth_rates=True)
+    eps = simulate(scn, cfg, np.random.default_rng(7))
+    run, one, ref = ClusterEkf(lay, cfg), ClusterEkf(lay, cfg), ReferenceClusterEkf(lay, cfg)
+    n_uwb = 0
+    for k, ep in enumerate(eps):
+        for f in (run, one, ref):
+            if k > 0:
+                f.predict(scn.dt_s)
+            f.update_epoch(gnss=ep.gnss, lead_base_ecef_m=ep.lead_base_ecef_m)
+        # each range its own event, 5 ms apart (two share a tag: dt = 0, no prediction)
+        events = [select_ranges(ep.uwb, np.array([i])) for i in range(ep.uwb.n)]
+        dts = [0.005 * (i % 3 != 2) for i in range(len(events))]
+        infos_run = run.update_uwb_events(dts, events)
+        infos_one = [(one.predict(dt), one.update_uwb(e))[1] for dt, e in zip(dts, events, strict=True)]
+        infos_ref = ref.update_uwb_events(dts, events)  # the base class: one at a time
+        assert infos_run == infos_one
+        assert [[(i.kind, i.vehicles, i.accepted) for i in x] for x in infos_run] == \
+               [[(i.kind, i.vehicles, i.accepted) for i in x] for x in infos_ref]
+        n_uwb += sum(i.kind == "uwb" and i.accepted for x in infos_run for i in x)
+        assert np.array_equal(run.x, one.x) and np.array_equal(run.P, one.P)
+        sd = np.sqrt(np.abs(np.diag(ref.P)))
+        np.testing.assert_array_less(np.abs(run.x - ref.x), 1e-9 * (np.abs(ref.x) + sd) + 1e-300)
+        np.testing.assert_array_less(np.abs(run.P - ref.P), 1e-9 * (np.abs(ref.P) + np.outer(sd, sd)) + 1e-300)
+    assert n_uwb > 50
+    assert run.counters == one.counters == ref.counters

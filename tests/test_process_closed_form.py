@@ -129,3 +129,25 @@ def test_blocks_are_assembled_from_the_closed_form():
     fr, qr = van_loan(*_gm_integrated(cfg.yaw_rate_tau_s, cfg.yaw_rate_sigma_rps, cfg.azimuth_rw_rad_per_sqrt_s**2), 0.1)
     np.testing.assert_allclose(fa, fr, rtol=1e-12, atol=1e-13)
     np.testing.assert_allclose(qa, qr, rtol=1e-12)
+
+
+def test_compiled_blocks_are_the_python_closed_form_bit_for_bit():
+    """The production filter predicts with F, Q computed inside a kernel
+    (kernels.vehicle_fq / gm_block_into). They evaluate gm_integrated_block's expressions
+    with the same operations in the same order and the same libm (expm1, exp, pow), so the
+    result must be *equal*, not close: any difference would mean two process models."""
+    from v2v.estimation import kernels
+
+    cfg = ProcessNoiseConfig()
+    vpar = np.array([cfg.vel_tau_s, cfg.vel_sigma_horizontal_mps, cfg.vel_sigma_vertical_mps, cfg.drift_tau_s,
+                     cfg.drift_sigma_mps, 3.0])
+    cfg3 = ProcessNoiseConfig(clock_bias_psd_m2ps=3.0)
+    fb, qb, fa, qa = np.empty((8, 8)), np.empty((8, 8)), np.empty((2, 2)), np.empty((2, 2))
+    for dt in np.concatenate([DTS, [0.3333333333333333, 0.5, 1.0, 2.0]]):  # both branches of the series switch
+        kernels.vehicle_fq(vpar, float(dt), fb, qb)
+        f, q = vehicle_block(cfg3, float(dt))
+        assert np.array_equal(fb, f) and np.array_equal(qb, q), dt
+        kernels.gm_block_into(cfg.yaw_rate_tau_s, cfg.yaw_rate_sigma_rps, float(dt), cfg.azimuth_rw_rad_per_sqrt_s**2,
+                              fa, qa, 0, 1)
+        f, q = azimuth_block(cfg, float(dt))
+        assert np.array_equal(fa, f) and np.array_equal(qa, q), dt

@@ -41,6 +41,8 @@ import math
 import numpy as np
 from numba import njit
 
+from v2v.estimation.process import _B11, _B12, _SERIES_MAX_A
+
 # status of one record (kernel output)
 ACCEPTED = 0
 REJECTED = 1  # failed the innovation test (or non-finite P h^T): an UpdateInfo with accepted=False
@@ -275,21 +277,35 @@ def uwb_batch(x, P, sa, sb, ib, isc, z, r_var, gate_k, nl_frac,
     records in order; ``rec_kind`` REC_UWB or REC_CONSTRAINT, ``rec_meas`` the range index.
     """
     m = z.shape[0]
+    recs = _uwb_records(m)
+    Q = np.empty((LAZY_RANK, x.shape[0]))  # deferred rank-1 terms (see lazy_scalar_update)
+    n_rec = _uwb_ranges(x, P, Q, 0, m, sa, sb, ib, isc, z, r_var, gate_k, nl_frac,
+                        bias_on, bias_lo, bias_hi, scale_on, scale_lo, scale_hi, recs, 0)
+    return n_rec, recs[0], recs[1], recs[2], recs[3], recs[4]
+
+
+@njit(**_JIT)
+def _uwb_records(m):
+    """Record arrays (kind, meas, nu, S, status) for ``m`` ranges: at most 1 + 8 constraint
+    records each (2 constraints x 4 passes)."""
     cap = m * 9
-    rec_kind = np.zeros(cap, dtype=np.int64)
-    rec_meas = np.zeros(cap, dtype=np.int64)
-    rec_nu = np.zeros(cap)
-    rec_s = np.zeros(cap)
-    rec_status = np.zeros(cap, dtype=np.int64)
-    n_rec = 0
+    return (np.zeros(cap, dtype=np.int64), np.zeros(cap, dtype=np.int64), np.zeros(cap), np.zeros(cap),
+            np.zeros(cap, dtype=np.int64))
+
+
+@njit(**_JIT)
+def _uwb_ranges(x, P, Q, k0, k1, sa, sb, ib, isc, z, r_var, gate_k, nl_frac,
+                bias_on, bias_lo, bias_hi, scale_on, scale_lo, scale_hi, recs, n_rec):
+    """The ranges ``k0 <= k < k1`` of :func:`uwb_batch` (lazy covariance buffer ``Q``,
+    flushed on return); records appended to ``recs`` from ``n_rec``; returns the new count."""
+    rec_kind, rec_meas, rec_nu, rec_s, rec_status = recs
     d = np.empty(3)
     hess = np.empty((3, 3))
     pd = np.empty((3, 3))
     idx = np.empty(8, dtype=np.int64)
     val = np.empty(8)
-    Q = np.empty((LAZY_RANK, x.shape[0]))  # deferred rank-1 terms (see lazy_scalar_update)
     kq = 0
-    for k in range(m):
+    for k in range(k0, k1):
         lim = r_var * nl_frac[k]
         _delta(x, sa[k], sb[k], d)
         range_hessian(d, hess)
@@ -366,10 +382,8 @@ def uwb_batch(x, P, sa, sb, ib, isc, z, r_var, gate_k, nl_frac,
                     changed = True
             if not changed:
                 break
-    kq = lazy_flush(P, Q, kq)
-    return n_rec, rec_kind, rec_meas, rec_nu, rec_s, rec_status
-
-
+    lazy_flush(P, Q, kq)
+    return n_rec
 
 
 @njit(**_JIT)
@@ -728,6 +742,105 @@ def symmetrize(P):
                     v = 0.5 * (P[i, j] + P[j, i])
                     P[i, j] = v
                     P[j, i] = v
+
+
+# ------------------------------------------------------------------ prediction in one call
+# ClusterEkf._predict_core (process.vehicle_block / azimuth_block F and Q, the vehicle blocks,
+# the random-walk diagonal, the azimuth pairs, symmetrize) as one kernel: the closed-form
+# Gauss-Markov discretization of v2v.estimation.process.gm_integrated_block evaluated here
+# with the same operations in the same order (bit-identical: tests/test_process_closed_form.py).
+
+_B11_C = np.array(_B11)
+_B12_C = np.array(_B12)
+
+
+@njit(**_JIT)
+def _horner(c, a):
+    acc = 0.0
+    for k in range(c.shape[0]):
+        acc = acc * a + c[k]
+    return acc
+
+
+@njit(**_JIT)
+def gm_block_into(tau, sigma, dt, extra_psd_level0, f, q, i, j):
+    """:func:`v2v.estimation.process.gm_integrated_block` (Pabolleta (2020) eq. 3.6 in closed
+    form) written into ``f[i|j, i|j]``, ``q[i|j, i|j]`` (level ``i``, GM rate ``j``)."""
+    qc = 2.0 * math.pow(sigma, 2.0) / tau
+    a = dt / tau
+    u1 = -math.expm1(-a)
+    u2 = -math.expm1(-2.0 * a)
+    if a < _SERIES_MAX_A:
+        b11 = _horner(_B11_C, a)
+        b12 = _horner(_B12_C, a)
+    else:
+        b11 = a - 2.0 * u1 + 0.5 * u2
+        b12 = u1 - 0.5 * u2
+    f[i, i] = 1.0
+    f[i, j] = tau * u1
+    f[j, i] = 0.0
+    f[j, j] = math.exp(-a)
+    q[i, i] = extra_psd_level0 * dt + qc * math.pow(tau, 3.0) * b11
+    q12 = qc * math.pow(tau, 2.0) * b12
+    q[i, j] = q12
+    q[j, i] = q12
+    q[j, j] = qc * tau * 0.5 * u2
+
+
+@njit(**_JIT)
+def vehicle_fq(vpar, dt, fb, qb):
+    """The 8x8 (F, Q) of :func:`v2v.estimation.process.vehicle_block` into ``fb``, ``qb``.
+    ``vpar`` = (vel_tau_s, vel_sigma_horizontal, vel_sigma_vertical, drift_tau_s,
+    drift_sigma, clock_bias_psd) (:func:`process_parameters`)."""
+    fb[:, :] = 0.0
+    qb[:, :] = 0.0
+    for axis in range(3):
+        gm_block_into(vpar[0], vpar[1] if axis < 2 else vpar[2], dt, 0.0, fb, qb, axis, 3 + axis)
+    gm_block_into(vpar[3], vpar[4], dt, vpar[5], fb, qb, 6, 7)
+
+
+@njit(**_JIT)
+def predict_all(x, P, dt, veh0, nveh, vpar, rw_diag, rw_psd, az_ia, az_ir, apar, fb, qb, fa, qa):
+    """x <- F x, P <- F P F^T + Q over ``dt`` for the whole state (ClusterEkf._predict_core):
+    ``nveh`` contiguous vehicle blocks from ``veh0`` (:func:`vehicle_fq`), random walks
+    (``P[i, i] += psd_i dt``), azimuth / azimuth-rate pairs (``apar`` = yaw-rate tau, sigma,
+    azimuth random-walk PSD), then :func:`symmetrize`. ``fb``, ``qb`` (8x8), ``fa``, ``qa``
+    (2x2) are scratch."""
+    if nveh:
+        vehicle_fq(vpar, dt, fb, qb)
+        predict_vehicle_blocks(x, P, veh0, nveh, fb, qb)
+    for k in range(rw_diag.shape[0]):
+        P[rw_diag[k], rw_diag[k]] += rw_psd[k] * dt
+    if az_ia.shape[0]:
+        gm_block_into(apar[0], apar[1], dt, apar[2], fa, qa, 0, 1)
+        predict_pairs(x, P, az_ia, az_ir, fa, qa)
+    symmetrize(P)
+
+
+@njit(**_JIT)
+def uwb_event_run(x, P, dts, starts, sa, sb, ib, isc, z, r_var, gate_k, nl_frac,
+                  bias_on, bias_lo, bias_hi, scale_on, scale_lo, scale_hi,
+                  veh0, nveh, vpar, rw_diag, rw_psd, az_ia, az_ir, apar):
+    """A run of UWB events (one time tag each): for event ``e``, :func:`predict_all` over
+    ``dts[e]`` (skipped when 0), then its ranges ``starts[e] <= k < starts[e + 1]`` as one
+    :func:`uwb_batch` (covariance flushed at the end of each event): the same arithmetic as
+    the filter's ``predict`` + ``update_uwb`` per event, without the per-event Python.
+    Returns :func:`uwb_batch`'s records (``rec_meas`` indexes the concatenated ranges)."""
+    m = z.shape[0]
+    recs = _uwb_records(m)
+    Q = np.empty((LAZY_RANK, x.shape[0]))
+    fb = np.empty((8, 8))
+    qb = np.empty((8, 8))
+    fa = np.empty((2, 2))
+    qa = np.empty((2, 2))
+    n_rec = 0
+    for e in range(dts.shape[0]):
+        if dts[e] > 0.0:
+            predict_all(x, P, dts[e], veh0, nveh, vpar, rw_diag, rw_psd, az_ia, az_ir, apar, fb, qb, fa, qa)
+        if starts[e + 1] > starts[e]:
+            n_rec = _uwb_ranges(x, P, Q, starts[e], starts[e + 1], sa, sb, ib, isc, z, r_var, gate_k, nl_frac,
+                                bias_on, bias_lo, bias_hi, scale_on, scale_lo, scale_hi, recs, n_rec)
+    return n_rec, recs[0], recs[1], recs[2], recs[3], recs[4]
 
 
 # ------------------------------------------------------------------ GNSS epoch sequencing

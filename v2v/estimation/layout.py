@@ -84,6 +84,7 @@ class StateLayout:
     lead: str
     blocks: tuple[BlockId, ...]
     _offsets: dict[BlockId, int] = field(init=False, repr=False, compare=False)
+    _vehicles: tuple[str, ...] = field(init=False, repr=False, compare=False)
     n: int = field(init=False)
 
     def __post_init__(self) -> None:
@@ -102,6 +103,7 @@ class StateLayout:
             if kind == AZIMUTH_RATE and (AZIMUTH, key) not in offsets:
                 raise UserError(f"azimuth-rate block of {key!r} has no azimuth block", field="layout.blocks")
         object.__setattr__(self, "_offsets", offsets)
+        object.__setattr__(self, "_vehicles", tuple(k for kind, k in self.blocks if kind == VEHICLE))
         object.__setattr__(self, "n", i)
 
     # ------------------------------------------------------------------ building
@@ -137,7 +139,7 @@ class StateLayout:
     @property
     def vehicles(self) -> tuple[str, ...]:
         """Non-lead vehicles, in state order."""
-        return tuple(k for kind, k in self.blocks if kind == VEHICLE)
+        return self._vehicles
 
     @property
     def azimuth_vehicles(self) -> tuple[str, ...]:
