@@ -12,6 +12,7 @@ Every solution processes the *same* measurements (and the same exchange losses).
 from __future__ import annotations
 
 import itertools
+from collections import Counter
 from collections.abc import Callable, Iterable, Sequence
 from dataclasses import dataclass, field
 from pathlib import Path
@@ -36,7 +37,7 @@ from v2v.estimation.layout import StateLayout
 from v2v.estimation.phase import PhaseConfig, wrong_fix
 from v2v.estimation.process import ProcessNoiseConfig
 from v2v.exchange import Message, V2VExchange
-from v2v.frames import ecef_to_enu, ecef_to_enu_rotation
+from v2v.frames import ecef_to_enu_rotation
 from v2v.metrics.errors import lead_frame_errors, lead_frame_rotation
 from v2v.sensors.measurements import Bearings, GnssEpoch, UwbRanges
 from v2v.traffic.snapshot import TrafficStep
@@ -300,8 +301,6 @@ class ExchangeStream:
         return self._events(ready)
 
     def _events(self, delivered: list[Message]) -> list[Event]:
-        from v2v.sensors.uwb import select_ranges
-
         lead_id = self.exchange.lead_id
         events: list[Event] = []
         j = 0
@@ -318,7 +317,7 @@ class ExchangeStream:
             elif m.kind == "uwb":
                 for g in group:
                     src, idx = g.payload
-                    events.append(Event(m.t_s, "uwb", uwb=select_ranges(src, np.array([idx]))))
+                    events.append(Event(m.t_s, "uwb", uwb=_one_range(src, idx)))
             elif m.kind == "bearing":
                 srcs = {id(g.payload[0]): g.payload[0] for g in group}
                 if len(srcs) == 1:
@@ -329,6 +328,15 @@ class ExchangeStream:
                     events.append(Event(m.t_s, "bearing", bearings=_concat_bearings(parts)))
             j = k
         return events
+
+
+def _one_range(src: UwbRanges, k: int) -> UwbRanges:
+    """Range ``k`` of ``src`` as its own UwbRanges (views: slices of src, not copies;
+    the same values as ``v2v.sensors.uwb.select_ranges(src, [k])``)."""
+    sl = slice(k, k + 1)
+    return UwbRanges(t_s=src.t_s[sl], true_t_s=src.true_t_s[sl], a=src.a[sl], b=src.b[sl], range_m=src.range_m[sl],
+                     true_range_m=src.true_range_m[sl], los=src.los[sl],
+                     errors_m={name: v[sl] for name, v in src.errors_m.items()})
 
 
 def _concat_bearings(parts: Sequence[Bearings]) -> Bearings:
@@ -386,23 +394,29 @@ class UpdateLog:
         import pickle
         import tempfile
 
-        p = [(t, info, f) for t, infos, fs in self._pending for info, f in zip(infos, fs, strict=True)]
-        if not p:
+        infos = [info for _, i, _ in self._pending for info in i]
+        if not infos:
             self._pending = []
             return
+        n = len(infos)
+        t_s = np.repeat(np.array([t for t, _, _ in self._pending], dtype=float),
+                        [len(i) for _, i, _ in self._pending])
+        faulty = np.fromiter((f for _, _, fs in self._pending for f in fs), bool, n)
+        kind, vehicles, _nu, _s, nis, accepted, prn = zip(*infos, strict=True)  # UpdateInfo fields
+        joined = {v: ",".join(v) for v in set(vehicles)}
         cols = {
-            "t_s": np.fromiter((x[0] for x in p), float, len(p)),
-            "kind": np.array([x[1].kind for x in p], dtype=object),
-            "vehicles": np.array([",".join(x[1].vehicles) for x in p], dtype=object),
-            "prn": [x[1].prn for x in p],
-            "nis": np.fromiter((x[1].nis for x in p), float, len(p)),
-            "accepted": np.fromiter((bool(x[1].accepted) for x in p), bool, len(p)),
-            "faulty": np.fromiter((x[2] for x in p), bool, len(p)),
+            "t_s": t_s,
+            "kind": np.array(kind, dtype=object),
+            "vehicles": np.array([joined[v] for v in vehicles], dtype=object),
+            "prn": list(prn),
+            "nis": np.fromiter(nis, float, n),
+            "accepted": np.fromiter(accepted, bool, n),
+            "faulty": faulty,
         }
         if self._file is None:
             self._file = tempfile.TemporaryFile(prefix="v2v_updates_")
         pickle.dump(cols, self._file, protocol=pickle.HIGHEST_PROTOCOL)
-        self.n += len(p)
+        self.n += n
         self._pending = []
 
     def kind_statistics(self) -> dict[str, Any]:
@@ -689,19 +703,59 @@ def run_solution(sol: SolutionSection, ekf: ClusterEkf, events: Sequence[Event],
     return runner.finish()
 
 
+_KIND_COLUMNS = {"sd_pseudorange": "pr", "sd_pseudorange_pair": "pr", "sd_doppler": "doppler", "sd_phase": "phase"}
+
+
+def _update_counts(infos: Iterable[UpdateInfo]) -> dict[str, dict[str, int]]:
+    """``{vehicle: {"used_<kind>" | "rejected_<kind>": count}}`` of an output interval's updates
+    (counted per distinct (vehicles, kind, accepted) first: tens of thousands of records)."""
+    counts: dict[str, dict[str, int]] = {}
+    for (vehs, kind, accepted), n in Counter((i.vehicles, i.kind, i.accepted) for i in infos).items():
+        key = ("used_" if accepted else "rejected_") + _short(kind)
+        for v in vehs:
+            c = counts.setdefault(v, {})
+            c[key] = c.get(key, 0) + n
+    return counts
+
+
 def _epoch_rows(name: str, t_s: float, ekf: ClusterEkf, step: TrafficStep, lead: str, vehicles: Sequence[str],
                 infos: Iterable[UpdateInfo]) -> list[dict[str, Any]]:
+    """One row per cluster vehicle at output epoch ``t_s``: truth and estimate relative to the
+    lead (ENU), errors and 1-sigma in the lead's frame (along, across-left, up), NEES of the
+    position, update counts. The numbers of all vehicles are computed as arrays at once."""
     lead_st = step.vehicles[lead]
     x, P = ekf.x, ekf.P
     lay = ekf.layout
     r_lead = lead_frame_rotation(lead_st.azimuth_rad)
+    counts = _update_counts(infos)
+    est_v = [v for v in vehicles if v in step.vehicles and v in lay.vehicles]
+    if est_v:
+        sts = [step.vehicles[v] for v in est_v]
+        pos = np.array([lay.position(v).start for v in est_v])
+        vel = np.array([lay.velocity(v).start for v in est_v])
+        ip = pos[:, None] + np.arange(3)
+        est = x[ip]  # (n, 3)
+        est_vel = x[vel[:, None] + np.arange(3)]
+        cov = P[ip[:, :, None], ip[:, None, :]]  # (n, 3, 3)
+        # stacked (n, 1, 3) @ (3, 3) products: the same BLAS call per vehicle as the 1-vehicle
+        # expressions (frames.ecef_to_enu, R P R^T, e^T P^-1 e), so the same bits
+        d = np.array([st.ecef_m for st in sts]) - np.asarray(lead_st.ecef_m, dtype=float)
+        true_rel = (d[:, None, :] @ ecef_to_enu_rotation(lead_st.lat_rad, lead_st.lon_rad).T)[:, 0]
+        true_vel = np.array([st.vel_enu_mps for st in sts]) - np.asarray(lead_st.vel_enu_mps)
+        err = lead_frame_errors(est, true_rel, lead_st.azimuth_rad)
+        sig = np.sqrt(np.clip(np.diagonal(r_lead @ cov @ r_lead.T, axis1=1, axis2=2), 0.0, None))
+        e_enu = est - true_rel
+        ready = np.array([ekf.is_initialized(v) for v in est_v])
+        nees = np.full(len(est_v), np.nan)
+        if ready.any():
+            er_ = e_enu[ready][:, None, :]
+            nees[ready] = (er_ @ np.linalg.solve(cov[ready], er_.transpose(0, 2, 1)))[:, 0, 0]
+        num = dict(zip(est_v, zip(true_rel.tolist(), est.tolist(), true_vel.tolist(), est_vel.tolist(), err.tolist(),
+                                  sig.tolist(), cov[:, 0, 0].tolist(), cov[:, 0, 1].tolist(), cov[:, 1, 1].tolist(),
+                                  nees.tolist(), ready.tolist(), strict=True), strict=True))
+    kinds = ("pr", "doppler", "uwb", "bearing") + (("phase",) if ekf.config.phase is not None else ())
+    integrity = getattr(ekf, "integrity_available", {})
     rows = []
-    counts: dict[str, dict[str, int]] = {}
-    for info in infos:
-        for v in info.vehicles:
-            c = counts.setdefault(v, {})
-            key = ("used_" if info.accepted else "rejected_") + _short(info.kind)
-            c[key] = c.get(key, 0) + 1
     for v in vehicles:
         st = step.vehicles.get(v)
         if st is None:
@@ -709,34 +763,24 @@ def _epoch_rows(name: str, t_s: float, ekf: ClusterEkf, step: TrafficStep, lead:
         if v not in lay.vehicles:  # left the cluster (as the lead sees it): a row without an estimate
             rows.append({"t_s": t_s, "solution": name, "vehicle": v, "initialized": False})
             continue
-        true_rel = ecef_to_enu(st.ecef_m, lead_st.lat_rad, lead_st.lon_rad, lead_st.ecef_m)
-        ready = ekf.is_initialized(v)
-        sl = lay.position(v)
-        est = x[sl]
-        cov = P[sl, sl]
-        err = lead_frame_errors(est, true_rel, lead_st.azimuth_rad)
-        sig = np.sqrt(np.clip(np.diag(r_lead @ cov @ r_lead.T), 0.0, None))
-        e_enu = est - true_rel
-        nees = float(e_enu @ np.linalg.solve(cov, e_enu)) if ready else float("nan")
+        tr, es, tv, ev, er, sg, cee, cen, cnn, ns, rd = num[v]
         c = counts.get(v, {})
         row = {
-            "t_s": t_s, "solution": name, "vehicle": v, "initialized": ready,
-            "true_e_m": true_rel[0], "true_n_m": true_rel[1], "true_u_m": true_rel[2],
-            "est_e_m": est[0], "est_n_m": est[1], "est_u_m": est[2],
-            "true_ve_mps": st.vel_enu_mps[0] - lead_st.vel_enu_mps[0],
-            "true_vn_mps": st.vel_enu_mps[1] - lead_st.vel_enu_mps[1],
-            "true_vu_mps": st.vel_enu_mps[2] - lead_st.vel_enu_mps[2],
-            "est_ve_mps": x[lay.velocity(v)][0], "est_vn_mps": x[lay.velocity(v)][1], "est_vu_mps": x[lay.velocity(v)][2],
-            "along_err_m": err[0], "across_err_m": err[1], "up_err_m": err[2],
-            "sigma_along_m": sig[0], "sigma_across_m": sig[1], "sigma_up_m": sig[2],
-            "cov_ee_m2": cov[0, 0], "cov_en_m2": cov[0, 1], "cov_nn_m2": cov[1, 1],
-            "nees_pos": nees,
+            "t_s": t_s, "solution": name, "vehicle": v, "initialized": rd,
+            "true_e_m": tr[0], "true_n_m": tr[1], "true_u_m": tr[2],
+            "est_e_m": es[0], "est_n_m": es[1], "est_u_m": es[2],
+            "true_ve_mps": tv[0], "true_vn_mps": tv[1], "true_vu_mps": tv[2],
+            "est_ve_mps": ev[0], "est_vn_mps": ev[1], "est_vu_mps": ev[2],
+            "along_err_m": er[0], "across_err_m": er[1], "up_err_m": er[2],
+            "sigma_along_m": sg[0], "sigma_across_m": sg[1], "sigma_up_m": sg[2],
+            "cov_ee_m2": cee, "cov_en_m2": cen, "cov_nn_m2": cnn,
+            "nees_pos": ns,
             "true_lane_index": st.lane_index, "lead_lane_index": lead_st.lane_index, "lane_width_m": st.lane_width_m,
         }
-        for kind in ("pr", "doppler", "uwb", "bearing") + (("phase",) if ekf.config.phase is not None else ()):
+        for kind in kinds:
             row[f"used_{kind}"] = c.get(f"used_{kind}", 0)
             row[f"rejected_{kind}"] = c.get(f"rejected_{kind}", 0)
-        row["integrity_available"] = bool(getattr(ekf, "integrity_available", {}).get(v, False))
+        row["integrity_available"] = bool(integrity.get(v, False))
         if lay.has("azimuth", v):
             row["azimuth_err_rad"] = float(_wrap(ekf.azimuth_rad(v) - st.azimuth_rad)) if ekf.is_azimuth_initialized(v) else float("nan")
         rows.append(row)
@@ -772,8 +816,7 @@ def _wrap(a: float) -> float:
 
 
 def _short(kind: str) -> str:
-    return {"sd_pseudorange": "pr", "sd_pseudorange_pair": "pr", "sd_doppler": "doppler", "sd_phase": "phase"}.get(
-        kind, kind)
+    return _KIND_COLUMNS.get(kind, kind)
 
 
 def enu_rotation(lat_rad: float, lon_rad: float) -> np.ndarray:
