@@ -483,28 +483,33 @@ class SolutionRecord:
     """
 
     name: str
-    rows: dict[str, list[Any]] = field(default_factory=dict)
     membership: list[tuple[float, str, str]] = field(default_factory=list)  # (t_s, vehicle, left|joined)
     counters: dict[str, int] = field(default_factory=dict)  # the filter's event counters at the end
     log: UpdateLog = field(default_factory=UpdateLog)
+    _rows: list[dict[str, Any]] = field(default_factory=list, repr=False)
 
     @property
     def updates(self) -> dict[str, list[Any]]:
         return self.log.columns()
 
+    @property
+    def rows(self) -> dict[str, list[Any]]:
+        """The epochs not yet taken, as columns (a column that first appears in a later row,
+        e.g. after a vehicle rejoined, is NaN before it; so is a key a row lacks)."""
+        keys: dict[str, None] = {}
+        for r in self._rows:
+            if len(r) != len(keys) or r.keys() != keys.keys():
+                keys.update(dict.fromkeys(r))
+        nan = float("nan")
+        return {k: [r.get(k, nan) for r in self._rows] for k in keys}
+
     def add_row(self, row: dict[str, Any]) -> None:
-        if not self.rows:
-            self.rows = {k: [] for k in row}
-        n = len(next(iter(self.rows.values())))
-        for k in row:
-            if k not in self.rows:  # a column that appears later (e.g. after a vehicle rejoined)
-                self.rows[k] = [float("nan")] * n
-        for k, col in self.rows.items():
-            col.append(row.get(k, float("nan")))
+        self._rows.append(row)
 
     def take_rows(self) -> dict[str, list[Any]]:
         """The epochs recorded since the last call (columns), and forget them."""
-        rows, self.rows = self.rows, {}
+        rows = self.rows
+        self._rows = []
         return rows
 
 

@@ -1164,6 +1164,15 @@ def _elevations(geo: GnssGeometry, sv_ecef_m: F64) -> F64:
     return np.arctan2(d[..., 2], np.hypot(d[..., 0], d[..., 1]))
 
 
+def _c3(a: F64) -> F64:
+    """``a`` as a C-contiguous (m, 3) float64 array (no copy when it already is one)."""
+    return np.ascontiguousarray(a, dtype=np.float64).reshape(-1, 3)
+
+
+def _c1(a: F64) -> F64:
+    return np.ascontiguousarray(a, dtype=np.float64)
+
+
 class ClusterEkf(ClusterFilterBase):
     """Production engine: sparse rows, O(n) P h^T, symmetric rank-1 covariance update,
     block-wise prediction (each vehicle block shares one cached 8x8 F and Q), all in the
@@ -1359,15 +1368,15 @@ class ClusterEkf(ClusterFilterBase):
     def _sd_pseudoranges(self, v: str, geo: GnssGeometry, ep: GnssEpoch, lead_ep: GnssEpoch,
                          iv: NDArray, il: NDArray) -> list[UpdateInfo]:
         """:meth:`ClusterFilterBase._sd_pseudoranges` in one compiled call
-        (:func:`v2v.estimation.kernels.sd_pseudorange_epoch`: the same row, clock-jump, screen
-        and batch kernels in the same order); counters, NIS window and records as there."""
+        (:func:`v2v.estimation.kernels.sd_pseudorange_vehicle`: the satellites gathered, then
+        the same row, clock-jump, screen and batch kernels in the same order); counters, NIS
+        window and records as there."""
         cfg = self.config
-        rows = models.SdPseudorangeRows(self.layout, geo, v, ep.sv_pos_ecef_m[iv], lead_ep.sv_pos_ecef_m[il])
-        z = np.ascontiguousarray(ep.pseudorange_m[iv] - lead_ep.pseudorange_m[il], dtype=np.float64)
-        r_var = cfg.noise.sd_pseudorange_var_m2
-        jump, order, isolated, n_flagged, nu, s, st = kernels.sd_pseudorange_epoch(
-            self._x, self._P, *rows.kernel_args(), z, r_var, self._k, cfg.clock_jump_detection,
-            cfg.clock_reset_sigma_m**2)
+        lay = self.layout
+        jump, order, isolated, n_flagged, nu, s, st = kernels.sd_pseudorange_vehicle(
+            self._x, self._P, geo.base_ecef_m, geo.rot_ecef_to_enu, self._pos0[v], lay.clock(v),
+            _c3(ep.sv_pos_ecef_m), _c3(lead_ep.sv_pos_ecef_m), _c1(ep.pseudorange_m), _c1(lead_ep.pseudorange_m),
+            iv, il, cfg.noise.sd_pseudorange_var_m2, self._k, cfg.clock_jump_detection, cfg.clock_reset_sigma_m**2)
         if jump:
             self._nis_window.pop(v, None)
             self._count("clock_jump_detected")
@@ -1382,7 +1391,7 @@ class ClusterEkf(ClusterFilterBase):
     def _sd_dopplers(self, v: str, geo: GnssGeometry, ep: GnssEpoch, lead_ep: GnssEpoch,
                      iv: NDArray, il: NDArray) -> list[UpdateInfo]:
         """:meth:`ClusterFilterBase._sd_dopplers` in one compiled call
-        (:func:`v2v.estimation.kernels.sd_doppler_epoch`)."""
+        (:func:`v2v.estimation.kernels.sd_doppler_vehicle`)."""
         zd = ep.doppler_mps[iv] - lead_ep.doppler_mps[il]
         ok = np.isfinite(zd)  # = both Dopplers finite (a difference of finite values is finite)
         if not ok.all():
@@ -1390,11 +1399,12 @@ class ClusterEkf(ClusterFilterBase):
             for _ in range(int((~ok).sum())):
                 self._count(f"nonfinite_{KIND_SD_DOPPLER}")
             iv, il, zd = iv[ok], il[ok], zd[ok]
-        rows = models.SdDopplerRows(self.layout, geo, v, ep.sv_pos_ecef_m[iv], ep.sv_vel_ecef_mps[iv],
-                                    lead_ep.sv_pos_ecef_m[il], lead_ep.sv_vel_ecef_mps[il])
-        order, n_flagged, nu, s, st = kernels.sd_doppler_epoch(
-            self._x, self._P, *rows.kernel_args(), np.ascontiguousarray(zd, dtype=np.float64),
-            self.config.noise.sd_doppler_var_m2ps2, self._k)
+        lay = self.layout
+        order, n_flagged, nu, s, st = kernels.sd_doppler_vehicle(
+            self._x, self._P, geo.base_ecef_m, geo.base_vel_ecef_mps, geo.rot_ecef_to_enu, self._pos0[v],
+            lay.velocity(v).start, lay.drift(v), _c3(ep.sv_pos_ecef_m), _c3(ep.sv_vel_ecef_mps),
+            _c3(lead_ep.sv_pos_ecef_m), _c3(lead_ep.sv_vel_ecef_mps), np.ascontiguousarray(zd, dtype=np.float64),
+            iv, il, self.config.noise.sd_doppler_var_m2ps2, self._k)
         if n_flagged:
             self.counters["screened_first_update"] = self.counters.get("screened_first_update", 0) + int(n_flagged)
         return self._records(KIND_SD_DOPPLER, (v,), order, nu, s, st, ep.prn[iv].tolist())

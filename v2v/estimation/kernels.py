@@ -1177,3 +1177,38 @@ def sd_doppler_epoch(x, P, base, base_vel, rot, ps, vs, idrift, sv, svv, rate_le
     nu, s, st = sd_doppler_batch(x, P, base, base_vel, rot, ps, vs, idrift, sv, svv, rate_lead, z, order, excluded,
                                  r_var, gate_k)
     return order, n_flag, nu, s, st
+
+
+@njit(**_JIT)
+def _gather3(a, idx):
+    out = np.empty((idx.shape[0], 3))
+    for i in range(idx.shape[0]):
+        for c in range(3):
+            out[i, c] = a[idx[i], c]
+    return out
+
+
+@njit(**_JIT)
+def sd_pseudorange_vehicle(x, P, base, rot, ps, iclk, sv_v, sv_lead, pr_v, pr_lead, iv, il, r_var, gate_k,
+                           detect_jump, reset_var):
+    """:func:`sd_pseudorange_epoch` of vehicle ``v`` from the two receivers' whole epochs:
+    satellite positions ``sv_v[iv]``, the lead's ranges ``|sv_lead[il] - base|``
+    (:func:`ranges_from`) and ``z = pr_v[iv] - pr_lead[il]`` gathered here (the arithmetic of
+    ``models.SdPseudorangeRows`` and the filter's ``z``)."""
+    sv = _gather3(sv_v, iv)
+    rho_lead = ranges_from(base, _gather3(sv_lead, il))
+    z = np.empty(iv.shape[0])
+    for i in range(iv.shape[0]):
+        z[i] = pr_v[iv[i]] - pr_lead[il[i]]
+    return sd_pseudorange_epoch(x, P, base, rot, ps, iclk, sv, rho_lead, z, r_var, gate_k, detect_jump, reset_var)
+
+
+@njit(**_JIT)
+def sd_doppler_vehicle(x, P, base, base_vel, rot, ps, vs, idrift, sv_v, svv_v, sv_lead, svv_lead, z, iv, il,
+                       r_var, gate_k):
+    """:func:`sd_doppler_epoch` of vehicle ``v`` from the two receivers' whole epochs
+    (satellite states gathered at ``iv`` / ``il``, the lead's range rates
+    :func:`range_rates_from` at the base: the arithmetic of ``models.SdDopplerRows``)."""
+    rate_lead = range_rates_from(base, base_vel, _gather3(sv_lead, il), _gather3(svv_lead, il))
+    return sd_doppler_epoch(x, P, base, base_vel, rot, ps, vs, idrift, _gather3(sv_v, iv), _gather3(svv_v, iv),
+                            rate_lead, z, r_var, gate_k)
