@@ -2,11 +2,14 @@
 
 Configuration (issue 7): 10 Hz GNSS, UWB between all pairs at ~3 Hz, bearings from every
 vehicle, one GPS+UWB+Bearing solution, replay off and on, on `open_highway` (lanes 0-2;
-one lane for N <= 3). Each case runs in a fresh process (libsumo: one simulation per
-process), one after another, with BLAS and numba limited to one thread, so the numbers are
-single-core times measured in this one invocation. Per case: the run's own wall time and
-stage breakdown (``summary.json`` ``wall_s``, ``timing_s``), its CPU time, and the process
-start-up (interpreter + imports, before ``run_scenario``) which a single run also pays.
+one lane for N <= 3). Each case runs in a fresh process, one after another, with BLAS and
+numba limited to one thread, so the numbers are single-core times measured in this one
+invocation. In that process two runs follow each other (libsumo: one simulation at a time):
+*cold*, the first run (it also loads the compiled kernels and pays the lazy imports: what
+a single ``v2v run`` pays), and *warm*, the next seed (the steady state of a sweep
+worker). Per run: wall time and stage breakdown (``summary.json`` ``wall_s``,
+``timing_s``) and CPU time; per process: the start-up (interpreter + imports, before
+``run_scenario``).
 
 Monte Carlo (issue 7 item 3): ``--mc-runs`` runs of ``--mc-duration`` s at N = 3 (seeds
 1..mc-runs, same scenario) through the sweep machinery (:func:`v2v.sweep.run_study`: a
@@ -48,17 +51,24 @@ import json, sys
 from v2v.config.scenario import load_scenario
 from v2v.run import run_scenario
 n, replay, out = int(sys.argv[1]), sys.argv[2] == "1", sys.argv[3]
-sc = load_scenario(None, json.loads(sys.argv[4]))
+ov = json.loads(sys.argv[4])
+sc = load_scenario(None, ov)
 t_imports = time.perf_counter() - t_start
-c0 = time.process_time()
-r = run_scenario(sc, out, quiet=True, replay=replay)
-s = r.summary
-print(json.dumps({"simulated_s": s["simulated_s"], "wall_s": s["wall_s"], "cpu_s": time.process_time() - c0,
-                  "startup_s": t_imports, "timing_s": s["timing_s"]}))
+res = {"startup_s": t_imports}
+# cold: the first run of the process; warm: a second run (next seed) in the same process
+for tag, scn in (("cold", sc), ("warm", load_scenario(None, ov + [f"seed={sc.seed + 1}"]))):
+    c0 = time.process_time()
+    r = run_scenario(scn, f"{out}_{tag}", quiet=True, replay=replay)
+    s = r.summary
+    res[tag] = {"simulated_s": s["simulated_s"], "wall_s": s["wall_s"], "cpu_s": time.process_time() - c0,
+                "timing_s": s["timing_s"]}
+print(json.dumps(res))
 """
 
 
 def run_case(n: int, duration: float, replay: bool, out: Path) -> dict:
+    """One fresh process: start-up (interpreter + imports), a cold run (compiled kernels
+    loaded, lazy imports paid) and a warm run (the steady state of a sweep worker)."""
     t0 = time.perf_counter()
     p = subprocess.run([sys.executable, "-c", CASE, str(n), "1" if replay else "0", str(out),
                         json.dumps(overrides(n, duration))],
@@ -105,24 +115,29 @@ def main(argv: list[str] | None = None) -> int:
         for n in args.sizes:
             for replay in replays:
                 r = run_case(n, args.duration, replay, Path(tmp) / f"n{n}_{int(replay)}")
-                r.update(n=n, replay=replay, rtf=r["simulated_s"] / r["wall_s"])
+                r.update(n=n, replay=replay)
+                for tag in ("cold", "warm"):
+                    c = r[tag]
+                    c["rtf"] = c["simulated_s"] / c["wall_s"]
+                    t = c["timing_s"]
+                    print(f"N={n:3d} replay={'on ' if replay else 'off'} {tag}: simulated {c['simulated_s']:6.1f} s  "
+                          f"wall {c['wall_s']:7.2f} s  cpu {c['cpu_s']:7.2f} s  RTF {c['rtf']:7.1f}x  | "
+                          + "  ".join(f"{k} {v:.2f}" for k, v in t.items()), flush=True)
+                print(f"        start-up (interpreter + imports) {r['startup_s']:.2f} s, whole process "
+                      f"{r['process_s']:.2f} s", flush=True)
                 rows.append(r)
-                t = r["timing_s"]
-                print(f"N={n:3d} replay={'on ' if replay else 'off'} simulated {r['simulated_s']:6.1f} s  "
-                      f"wall {r['wall_s']:7.2f} s  cpu {r['cpu_s']:7.2f} s  RTF {r['rtf']:7.1f}x  "
-                      f"start-up {r['startup_s']:.2f} s  process {r['process_s']:.2f} s  | "
-                      + "  ".join(f"{k} {v:.2f}" for k, v in t.items()), flush=True)
         if args.mc_runs:
             mc = run_monte_carlo(args.mc_runs, args.mc_duration, args.mc_workers, Path(tmp))
     if rows:
-        print("\nreal-time factor (simulated s / wall s of the run), one core:")
-        print(f"{'N':>4s} {'replay off':>11s} {'replay on':>10s} {'replay share':>13s} {'RTF incl. start-up':>19s}")
+        print("\nreal-time factor (simulated s / wall s of the run), one core; cold = first run of a fresh")
+        print("process (kernels loaded, lazy imports), warm = second run in the same process (a sweep worker):")
+        print(f"{'N':>4s} {'off, cold':>10s} {'off, warm':>10s} {'on, warm':>9s} {'replay share (warm)':>20s}")
         for n in args.sizes:
             off = next(r for r in rows if r["n"] == n and not r["replay"])
             on = next((r for r in rows if r["n"] == n and r["replay"]), None)
-            share = f"{1.0 - off['wall_s'] / on['wall_s']:13.1%}" if on else f"{'-':>13s}"
-            rtf_on = f"{on['rtf']:10.1f}" if on else f"{'-':>10s}"
-            print(f"{n:4d} {off['rtf']:11.1f} {rtf_on} {share} {off['simulated_s'] / off['process_s']:19.1f}")
+            share = f"{1.0 - off['warm']['wall_s'] / on['warm']['wall_s']:20.1%}" if on else f"{'-':>20s}"
+            rtf_on = f"{on['warm']['rtf']:9.1f}" if on else f"{'-':>9s}"
+            print(f"{n:4d} {off['cold']['rtf']:10.1f} {off['warm']['rtf']:10.1f} {rtf_on} {share}")
     if mc:
         print(f"\nMonte Carlo: {mc['runs']} runs x {mc['duration_s']:.0f} s, N = 3, {mc['workers']} worker processes: "
               f"{mc['wall_s']:.1f} s wall ({mc['failed']} failed; mean run wall {mc['per_run_wall_mean_s']:.2f} s)")
