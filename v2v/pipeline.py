@@ -257,9 +257,16 @@ class ExchangeStream:
                 self._add(float(uwb.t_s[k]), uwb.a[k], "uwb", (uwb, k))
 
     def add_bearings(self, bearings: Bearings | None) -> None:
-        if bearings is not None:
-            for k in range(bearings.n):
-                self._add(float(bearings.t_s[k]), bearings.a[k], "bearing", (bearings, k))
+        """One message per measuring vehicle and time tag, carrying all its bearings of that
+        instant (the packet the exchange model describes; lost or delayed as a whole)."""
+        if bearings is None or bearings.n == 0:
+            return
+        t = np.asarray(bearings.t_s, dtype=float)
+        groups: dict[tuple[float, str], list[int]] = {}
+        for k, (tk, a) in enumerate(zip(t.tolist(), bearings.a, strict=True)):
+            groups.setdefault((tk, a), []).append(k)
+        for (tk, a), idx in groups.items():
+            self._add(tk, a, "bearing", (bearings, idx))
 
     def add_output_time(self, t_s: float) -> None:
         self._times.append(t_s)
@@ -318,13 +325,14 @@ class ExchangeStream:
                 for g in group:
                     src, idx = g.payload
                     events.append(Event(m.t_s, "uwb", uwb=_one_range(src, idx)))
-            elif m.kind == "bearing":
+            elif m.kind == "bearing":  # every delivered packet of this time tag, in measurement order
                 srcs = {id(g.payload[0]): g.payload[0] for g in group}
                 if len(srcs) == 1:
                     src = group[0].payload[0]
-                    events.append(Event(m.t_s, "bearing", bearings=_subset_bearings(src, np.array([g.payload[1] for g in group]))))
+                    idx = np.sort(np.concatenate([np.asarray(g.payload[1], dtype=np.intp) for g in group]))
+                    events.append(Event(m.t_s, "bearing", bearings=_subset_bearings(src, idx)))
                 else:  # one time tag split over two chunks' outputs (not expected: bearings are per step)
-                    parts = [_subset_bearings(g.payload[0], np.array([g.payload[1]])) for g in group]
+                    parts = [_subset_bearings(g.payload[0], np.asarray(g.payload[1], dtype=np.intp)) for g in group]
                     events.append(Event(m.t_s, "bearing", bearings=_concat_bearings(parts)))
             j = k
         return events

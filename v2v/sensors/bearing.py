@@ -29,10 +29,10 @@ from typing import Any
 import numpy as np
 
 from v2v.errors import UserError
-from v2v.frames import ecef_to_enu, wrap_angle
+from v2v.frames import wrap_angle
 from v2v.measmodels import bearing_rad, range_m
 from v2v.sensors.measurements import Bearings
-from v2v.sensors.uwb import vehicle_boxes
+from v2v.sensors.uwb import vehicle_boxes, vehicle_boxes_many
 from v2v.traffic.snapshot import TrafficStep
 
 
@@ -144,21 +144,24 @@ class BearingStream:
                 )
 
     def push(self, steps: Sequence[TrafficStep]) -> Bearings:
-        """Bearings of the given steps (the next ones of the run, in time order)."""
+        """Bearings of the given steps (the next ones of the run, in time order).
+
+        The whole chunk is synthesized at once: the measuring steps are grouped into runs of
+        the same vehicles, each run's geometry is one stacked computation, the occlusion is one
+        query (``links_many`` when the occlusion object has it), and the random numbers are
+        one draw split as the step-by-step synthesis drew them (per step: each measuring
+        vehicle's azimuth bias and white noise, then the bearing noise of every link).
+        """
         s = self.sensor
-        rng = self.rng
-        occlusion = self.occlusion
         steps = list(steps)
         for st in steps:
             self._seen.update(st.vehicles)
-        cols: dict[str, list] = {k: [] for k in ("t", "a", "b", "beta", "beta_true", "az_rep", "az_true")}
         if self._t0 is None and steps:
             self._t0 = steps[0].t_s
-        t0 = self._t0
-        bias = self._bias
+        sel: list[tuple[TrafficStep, list[str], list[str]]] = []
         for st in steps:
             if s.rate_hz is not None:
-                tick = math.floor((st.t_s - t0) * s.rate_hz + 1e-9)
+                tick = math.floor((st.t_s - self._t0) * s.rate_hz + 1e-9)
                 if tick == self._last_tick:
                     continue
                 self._last_tick = tick
@@ -166,74 +169,154 @@ class BearingStream:
             if len(ids) < 2:
                 continue
             meas = ids if s.measuring == "all" else [v for v in s.measuring if v in st.vehicles]
-            if not meas:
-                continue
-            # All (a, b) links of this step at once: a's own ENU frame for each a.
-            pa = [a for a in meas for b in ids if b != a]
-            pb = [b for a in meas for b in ids if b != a]
-            d_enu = np.concatenate(
-                [
-                    ecef_to_enu(
-                        np.array([st.vehicles[b].ecef_m for b in ids if b != a], dtype=float),
-                        st.vehicles[a].lat_rad,
-                        st.vehicles[a].lon_rad,
-                        st.vehicles[a].ecef_m,
-                    )
-                    for a in meas
-                ]
-            )
-            az_true = np.array([st.vehicles[a].azimuth_rad for a in pa])
-            beta_true = bearing_rad(d_enu, az_true)
-            ok = (range_m(np.zeros(3), d_enu) <= s.max_range_m) & (
-                np.abs(beta_true) <= 0.5 * s.field_of_view_rad + 1e-12
-            )
-            if occlusion is not None and np.any(ok):
-                boxes, row = vehicle_boxes(st)
-                idx = np.flatnonzero(ok)
-                p0 = np.array([st.vehicles[pa[i]].xyz_m for i in idx], dtype=float)
-                p1 = np.array([st.vehicles[pb[i]].xyz_m for i in idx], dtype=float)
-                excl = np.array([[row[pa[i]], row[pb[i]]] for i in idx], dtype=np.int64)
-                res = occlusion.links(p0, p1, boxes if len(boxes) else None, excl)
-                ok[idx] &= ~np.asarray(res.blocked, dtype=bool)
-            # Reported azimuth: one value per measuring vehicle and epoch (from a's own navigation).
-            az_rep: dict[str, float] = {}
-            for a in meas:
-                b_prev = bias.get(a)
-                if s.azimuth_bias_sigma_rad > 0.0:
-                    if b_prev is None:
-                        bval = s.azimuth_bias_sigma_rad * rng.standard_normal()
-                    else:
-                        phi = math.exp(-(st.t_s - b_prev[0]) / s.azimuth_bias_tau_s)
-                        bval = phi * b_prev[1] + math.sqrt(1.0 - phi * phi) * s.azimuth_bias_sigma_rad * rng.standard_normal()
-                    bias[a] = (st.t_s, bval)
-                else:
-                    bval = 0.0
-                w = s.azimuth_sigma_rad * rng.standard_normal()
-                az_rep[a] = (st.vehicles[a].azimuth_rad + bval + w) % (2.0 * math.pi)
-            noise = s.sigma_rad * rng.standard_normal(len(pa))
-            k = np.flatnonzero(ok)
-            if k.size == 0:
-                continue
-            cols["t"].append(np.full(k.size, st.t_s))
-            cols["a"].extend(pa[i] for i in k)
-            cols["b"].extend(pb[i] for i in k)
-            cols["beta"].append(wrap_angle(beta_true[k] + noise[k]))
-            cols["beta_true"].append(beta_true[k])
-            cols["az_rep"].append(np.array([az_rep[pa[i]] for i in k]))
-            cols["az_true"].append(az_true[k])
+            if meas:
+                sel.append((st, ids, meas))
+        if not sel:
+            return self._output([])
+        # Runs of consecutive steps with the same vehicles and measuring vehicles.
+        runs: list[_Run] = []
+        for st, ids, meas in sel:
+            if runs and runs[-1].ids == ids and runs[-1].meas == meas:
+                runs[-1].steps.append(st)
+            else:
+                runs.append(_Run(ids, meas, [st]))
+        n_draw = sum(len(r.steps) * r.draws_per_step(s.azimuth_bias_sigma_rad > 0.0) for r in runs)
+        z = self.rng.standard_normal(n_draw)
+        off = 0
+        for r in runs:
+            n = len(r.steps) * r.draws_per_step(s.azimuth_bias_sigma_rad > 0.0)
+            r.synthesize(s, z[off:off + n], self._bias)
+            off += n
+        if self.occlusion is not None:
+            _occlude(runs, self.occlusion)
+        return self._output(runs)
 
-        def cat(key: str) -> np.ndarray:
-            return np.concatenate(cols[key]) if cols[key] else np.zeros(0)
+    def _output(self, runs: list[_Run]) -> Bearings:
+        """The kept links of the runs, in step order (links in (measuring, other) id order)."""
+        keep = [(r, np.flatnonzero(r.ok)) for r in runs]
+        a = tuple(x for r, k in keep for x in r.name_a[k % r.pa.size].tolist())
+        b = tuple(x for r, k in keep for x in r.name_b[k % r.pa.size].tolist())
+
+        def cat(parts: list[np.ndarray]) -> np.ndarray:
+            return np.concatenate(parts) if parts else np.zeros(0)
 
         out = Bearings(
-            t_s=cat("t"),
-            a=tuple(cols["a"]),
-            b=tuple(cols["b"]),
-            bearing_rad=cat("beta"),
-            true_bearing_rad=cat("beta_true"),
-            azimuth_reported_rad=cat("az_rep"),
-            true_azimuth_rad=cat("az_true"),
-            los=np.ones(len(cols["a"]), dtype=bool),
+            t_s=cat([r.t_s[k // r.pa.size] for r, k in keep]),
+            a=a,
+            b=b,
+            bearing_rad=cat([wrap_angle(r.beta_true[k] + r.noise[k]) for r, k in keep]),
+            true_bearing_rad=cat([r.beta_true[k] for r, k in keep]),
+            azimuth_reported_rad=cat([r.az_rep.reshape(-1)[r.link_meas[k]] for r, k in keep]),
+            true_azimuth_rad=cat([r.az_true[k] for r, k in keep]),
+            los=np.ones(len(a), dtype=bool),
         )
         self.n += out.n
         return out
+
+
+class _Run:
+    """Consecutive measuring steps with the same vehicles ``ids`` and measuring vehicles ``meas``.
+
+    Links are (step, measuring vehicle a, other vehicle b), flattened step-major with a's in
+    ``meas`` order and b's in ``ids`` order (the step-by-step order): link ``i`` is step
+    ``i // P`` and pair ``i % P`` of ``pa``/``pb`` (indices into ``ids``).
+    """
+
+    def __init__(self, ids: list[str], meas: list[str], steps: list[TrafficStep]):
+        self.ids, self.meas, self.steps = ids, meas, steps
+        col = {v: i for i, v in enumerate(ids)}
+        self.am = np.array([col[a] for a in meas], dtype=np.int64)  # (M,)
+        self.others = np.array([[j for j in range(len(ids)) if j != i] for i in self.am], dtype=np.int64)  # (M, N-1)
+        self.pa = np.repeat(self.am, len(ids) - 1)
+        self.pb = self.others.reshape(-1)
+        names = np.array(ids, dtype=object)
+        self.name_a, self.name_b = names[self.pa], names[self.pb]
+
+    def draws_per_step(self, bias_on: bool) -> int:
+        return len(self.meas) * (2 if bias_on else 1) + self.pa.size
+
+    def synthesize(self, s: BearingSensor, z: np.ndarray, bias: dict[str, tuple[float, float]]) -> None:
+        """True bearings, visibility (range, field of view), noise and reported azimuths of every link.
+
+        ``ecef_to_enu`` per measuring vehicle and step is one stacked ``matmul`` here (the same
+        BLAS product per step), the rest elementwise: the numbers equal the per-step ones.
+        """
+        n_s, n_m, n_p = len(self.steps), len(self.meas), self.pa.size
+        vs = [[st.vehicles[v] for v in self.ids] for st in self.steps]
+        ecef = np.array([[v.ecef_m for v in row] for row in vs], dtype=float)  # (S, N, 3)
+        geo = np.array([[(v.lat_rad, v.lon_rad, v.azimuth_rad) for v in row] for row in vs], dtype=float)
+        self.xyz = np.array([[v.xyz_m for v in row] for row in vs], dtype=float)
+        self.t_s = np.array([st.t_s for st in self.steps], dtype=float)
+        lat, lon, az = geo[:, self.am, 0], geo[:, self.am, 1], geo[:, self.am, 2]  # (S, M)
+        sl, cl, so, co = np.sin(lat), np.cos(lat), np.sin(lon), np.cos(lon)
+        rot = np.empty((n_s, n_m, 3, 3))  # v2v.frames.ecef_to_enu_rotation
+        rot[..., 0, 0], rot[..., 0, 1], rot[..., 0, 2] = -so, co, 0.0
+        rot[..., 1, 0], rot[..., 1, 1], rot[..., 1, 2] = -sl * co, -sl * so, cl
+        rot[..., 2, 0], rot[..., 2, 1], rot[..., 2, 2] = cl * co, cl * so, sl
+        d = ecef[:, self.others, :] - ecef[:, self.am, None, :]  # (S, M, N-1, 3)
+        d_enu = np.matmul(d, rot.swapaxes(-1, -2)).reshape(-1, 3)
+        self.az_true = np.repeat(az, len(self.ids) - 1, axis=1).reshape(-1)
+        self.beta_true = bearing_rad(d_enu, self.az_true)
+        self.ok = (range_m(np.zeros(3), d_enu) <= s.max_range_m) & (
+            np.abs(self.beta_true) <= 0.5 * s.field_of_view_rad + 1e-12
+        )
+        # Reported azimuth: one value per measuring vehicle and epoch (from a's own navigation).
+        bias_on = s.azimuth_bias_sigma_rad > 0.0
+        zz = z.reshape(n_s, -1)
+        z_az = zz[:, : n_m * (2 if bias_on else 1)].reshape(n_s, n_m, -1)
+        bval = np.zeros((n_s, n_m))
+        if bias_on:
+            for i, st in enumerate(self.steps):
+                for j, a in enumerate(self.meas):
+                    b_prev = bias.get(a)
+                    zb = z_az[i, j, 0]
+                    if b_prev is None:
+                        v = s.azimuth_bias_sigma_rad * zb
+                    else:
+                        phi = math.exp(-(st.t_s - b_prev[0]) / s.azimuth_bias_tau_s)
+                        v = phi * b_prev[1] + math.sqrt(1.0 - phi * phi) * s.azimuth_bias_sigma_rad * zb
+                    bias[a] = (st.t_s, v)
+                    bval[i, j] = v
+        w = s.azimuth_sigma_rad * z_az[..., -1]
+        self.az_rep = (az + bval + w) % (2.0 * math.pi)  # (S, M)
+        i = np.arange(n_s * n_p)
+        self.link_meas = (i // n_p) * n_m + (i % n_p) // (len(self.ids) - 1)  # row of az_rep.reshape(-1)
+        self.noise = s.sigma_rad * zz[:, n_m * (2 if bias_on else 1):].reshape(-1)
+
+
+def _occlude(runs: list[_Run], occlusion: Any) -> None:
+    """Clear ``ok`` of the links that a vehicle or a building blocks (antenna to antenna).
+
+    One ``occlusion.links_many`` query for every visible link of the chunk, each against its
+    own step's vehicle boxes; an occlusion object with only ``links`` is asked step by step.
+    """
+    steps = [st for r in runs for st in r.steps]
+    link_step, p0, p1, ex, where = [], [], [], [], []
+    base = 0
+    for ri, r in enumerate(runs):
+        n_p = r.pa.size
+        k = np.flatnonzero(r.ok)
+        si, pi = k // n_p, k % n_p
+        link_step.append(base + si)
+        p0.append(r.xyz[si, r.pa[pi]])
+        p1.append(r.xyz[si, r.pb[pi]])
+        ex.append(np.column_stack([r.pa[pi], r.pb[pi]]))
+        where.append(np.column_stack([np.full(k.size, ri), k]))
+        base += len(r.steps)
+    link_step_a = np.concatenate(link_step)
+    if link_step_a.size == 0:
+        return
+    p0_a, p1_a, ex_a, where_a = (np.concatenate(x) for x in (p0, p1, ex, where))
+    if hasattr(occlusion, "links_many"):
+        boxes, first, _ = vehicle_boxes_many(steps)
+        blocked = np.asarray(occlusion.links_many(p0_a, p1_a, boxes, first, link_step_a, ex_a).blocked, dtype=bool)
+    else:
+        blocked = np.zeros(link_step_a.size, dtype=bool)
+        bounds = np.flatnonzero(np.diff(link_step_a)) + 1
+        for sel in np.split(np.arange(link_step_a.size), bounds):
+            boxes, _ = vehicle_boxes(steps[int(link_step_a[sel[0]])])
+            res = occlusion.links(p0_a[sel], p1_a[sel], boxes if len(boxes) else None, ex_a[sel])
+            blocked[sel] = np.asarray(res.blocked, dtype=bool)
+    for ri, r in enumerate(runs):
+        mine = where_a[:, 0] == ri
+        r.ok[where_a[mine, 1][blocked[mine]]] = False

@@ -68,6 +68,7 @@ from pathlib import Path
 from typing import Any
 
 import numpy as np
+from numba import njit
 from numpy.typing import ArrayLike, NDArray
 
 from v2v.errors import UserError
@@ -347,24 +348,29 @@ class _Track:
         n = self.t_s.shape[0]
         if n == 1:
             return np.zeros(t_s.shape, dtype=np.intp), np.zeros(t_s.shape)
-        i = np.clip(np.searchsorted(self.t_s, t_s, side="right") - 1, 0, n - 2)
+        i = np.minimum(np.maximum(np.searchsorted(self.t_s, t_s, side="right") - 1, 0), n - 2)
         w = (t_s - self.t_s[i]) / (self.t_s[i + 1] - self.t_s[i])
         return i, w
 
-    def valid(self, t_s: F64, max_gap_s: float) -> NDArray[np.bool_]:
-        """True where t lies inside the track and its bracketing steps are at most max_gap_s apart."""
+    def valid(self, t_s: F64, max_gap_s: float, br: tuple[NDArray[np.intp], F64] | None = None) -> NDArray[np.bool_]:
+        """True where t lies inside the track and its bracketing steps are at most max_gap_s apart
+        (``br``: ``bracket(t_s)`` if already known)."""
         n = self.t_s.shape[0]
         inside = (t_s >= self.t_s[0]) & (t_s <= self.t_s[-1])
         if n == 1:
             return inside & (t_s == self.t_s[0])
-        i, _ = self.bracket(t_s)
+        i, _ = self.bracket(t_s) if br is None else br
         return inside & ((self.t_s[i + 1] - self.t_s[i]) <= max_gap_s)
 
-    def at(self, t_s: F64) -> tuple[F64, F64]:
-        i, w = self.bracket(t_s)
+    def at(self, t_s: F64, *, with_xyz: bool = True, br: tuple[NDArray[np.intp], F64] | None = None
+           ) -> tuple[F64, F64 | None]:
+        """Interpolated ECEF and net-XYZ antenna positions (``with_xyz=False``: ECEF only, xyz None;
+        ``br``: ``bracket(t_s)`` if already known)."""
+        i, w = self.bracket(t_s) if br is None else br
         w = w[:, None]
-        ecef = self.ecef_m[i] * (1.0 - w) + self.ecef_m[np.minimum(i + 1, len(self.t_s) - 1)] * w
-        xyz = self.xyz_m[i] * (1.0 - w) + self.xyz_m[np.minimum(i + 1, len(self.t_s) - 1)] * w
+        j = np.minimum(i + 1, len(self.t_s) - 1)
+        ecef = self.ecef_m[i] * (1.0 - w) + self.ecef_m[j] * w
+        xyz = self.xyz_m[i] * (1.0 - w) + self.xyz_m[j] * w if with_xyz else None
         return ecef, xyz
 
 
@@ -427,6 +433,34 @@ def vehicle_boxes(step: TrafficStep) -> tuple[F64, dict[str, int]]:
     cluster = np.array(rows, dtype=float).reshape(-1, 6)
     bg = np.asarray(step.background, dtype=float).reshape(-1, 6)
     return np.vstack([cluster, bg]), {vid: i for i, vid in enumerate(ids)}
+
+
+def vehicle_boxes_many(steps: Sequence[TrafficStep]) -> tuple[F64, NDArray[np.int64], list[list[str]]]:
+    """:func:`vehicle_boxes` of several steps at once (one vectorized pass).
+
+    Returns every step's boxes stacked, ``first`` (steps + 1,) with step ``s``'s rows at
+    ``first[s]:first[s + 1]``, and each step's sorted cluster ids (vehicle ``ids[s][i]`` is
+    row ``i`` of its step's set). The rows equal :func:`vehicle_boxes`' bit for bit.
+    """
+    ids = [sorted(st.vehicles) for st in steps]
+    states = [st.vehicles[v] for st, vs in zip(steps, ids, strict=True) for v in vs]
+    n_v = np.array([len(v) for v in ids], dtype=np.int64)
+    bgs = [np.asarray(st.background, dtype=float).reshape(-1, 6) for st in steps]
+    n_bg = np.array([len(b) for b in bgs], dtype=np.int64)
+    first = np.zeros(len(steps) + 1, dtype=np.int64)
+    np.cumsum(n_v + n_bg, out=first[1:])
+    out = np.empty((int(first[-1]), 6))
+    if states:
+        fb = np.array([vs.front_bumper_xy_m for vs in states], dtype=float).reshape(-1, 2)
+        a = np.array([vs.azimuth_rad for vs in states], dtype=float)
+        size = np.array([(vs.length_m, vs.width_m, vs.height_m) for vs in states], dtype=float)
+        c = fb - (0.5 * size[:, :1]) * np.column_stack([np.sin(a), np.cos(a)])
+        rows = np.repeat(first[:-1], n_v) + np.arange(a.size) - np.repeat(np.cumsum(n_v) - n_v, n_v)
+        out[rows, :2], out[rows, 2], out[rows, 3:] = c, a, size
+    if n_bg.any():
+        rows = np.repeat(first[:-1] + n_v, n_bg) + np.arange(int(n_bg.sum())) - np.repeat(np.cumsum(n_bg) - n_bg, n_bg)
+        out[rows] = np.concatenate(bgs)
+    return out, first, ids
 
 
 # ---------------------------------------------------------------------------------------------
@@ -625,22 +659,38 @@ class UwbNetwork:
             nearer_prev = np.abs(t_steps[k_prev] - cat["t_true"]) < np.abs(t_steps[k] - cat["t_true"])
             k = np.where(nearer_prev, k_prev, k)
             idx = np.flatnonzero(keep)
-            # group the attempts by step: one stable sort, not a scan of every attempt per step
-            # (that scan was O(steps x attempts): ~500 s of a 10-vehicle hour in one call)
-            idx = idx[np.argsort(k[idx], kind="stable")]
-            ks = k[idx]
-            bounds = np.flatnonzero(np.diff(ks)) + 1
-            for sel in np.split(idx, bounds) if idx.size else ():
-                boxes, row = vehicle_boxes(steps[int(k[sel[0]])])
-                exclude = np.array(
-                    [[row.get(a, -1), row.get(b, -1)] for a, b in zip(a_ids[sel], b_ids[sel], strict=True)],
-                    dtype=np.int64,
-                ).reshape(-1, 2)
-                res = occlusion.links(cat["xyz_a"][sel], cat["xyz_b"][sel], boxes if len(boxes) else None, exclude)
+            if hasattr(occlusion, "links_many"):
+                # One query: each attempt against the boxes of its own step.
+                used, box_set = np.unique(k[idx], return_inverse=True)
+                boxes, first, step_ids = vehicle_boxes_many([steps[int(i)] for i in used])
+                # Box row of each end's vehicle in its step (-1 if absent): a table per distinct
+                # vehicle set (usually one) over the names of the chunk.
+                names, name_inv = np.unique(np.concatenate([a_ids[idx], b_ids[idx]]), return_inverse=True)
+                sets: dict[tuple[str, ...], int] = {}
+                set_of_step = np.array([sets.setdefault(tuple(v), len(sets)) for v in step_ids], dtype=np.int64)
+                table = np.array([[row.get(x, -1) for x in names.tolist()]
+                                  for row in ({v: i for i, v in enumerate(ids)} for ids in sets)],
+                                 dtype=np.int64).reshape(len(sets), names.size)
+                exclude = table[set_of_step[box_set][:, None], name_inv.reshape(2, -1).T]
+                res = occlusion.links_many(cat["xyz_a"][idx], cat["xyz_b"][idx], boxes, first, box_set, exclude)
                 blocked = np.asarray(res.blocked, dtype=bool)
-                excess = np.asarray(res.reflection_excess_m, dtype=float)
-                blocked_all[sel] = blocked
-                nlos[sel] = np.where(blocked, excess, 0.0)
+                blocked_all[idx] = blocked
+                nlos[idx] = np.where(blocked, np.asarray(res.reflection_excess_m, dtype=float), 0.0)
+            else:
+                # group the attempts by step: one stable sort, not a scan of every attempt per step
+                # (that scan was O(steps x attempts): ~500 s of a 10-vehicle hour in one call)
+                idx = idx[np.argsort(k[idx], kind="stable")]
+                bounds = np.flatnonzero(np.diff(k[idx])) + 1
+                for sel in np.split(idx, bounds) if idx.size else ():
+                    boxes, row = vehicle_boxes(steps[int(k[sel[0]])])
+                    exclude = np.array(
+                        [[row.get(a, -1), row.get(b, -1)] for a, b in zip(a_ids[sel], b_ids[sel], strict=True)],
+                        dtype=np.int64,
+                    ).reshape(-1, 2)
+                    res = occlusion.links(cat["xyz_a"][sel], cat["xyz_b"][sel], boxes if len(boxes) else None, exclude)
+                    blocked = np.asarray(res.blocked, dtype=bool)
+                    blocked_all[sel] = blocked
+                    nlos[sel] = np.where(blocked, np.asarray(res.reflection_excess_m, dtype=float), 0.0)
             # Blocked: measured only via a reflection, and then only with the detection probability.
             detect = cat["nlos_draw"] < cat["nlos_p"]
             keep &= ~(blocked_all & (np.isnan(nlos) | ~detect))
@@ -739,6 +789,31 @@ class _PairDraws:
                 self._noise.standard_normal(k), self._mp.standard_normal(k))
 
 
+_PAIR_COLUMNS = ("nlos_p", "osc", "walk_k", "max_range", "quant", "noise_sigma", "noise_ref", "noise_exp")
+"""Per-pair settings copied to every attempt of the pair (columns of the synthesis, see :func:`_finish_unsorted`)."""
+
+
+def _pair_constants(net: UwbNetwork) -> dict[str, Any]:
+    """Per-pair arrays (index = position in ``net.pairs``) of the settings the synthesis gathers by pair:
+    the columns :data:`_PAIR_COLUMNS`, loss probability, time-tag sigma, multipath clip, bias (from
+    :meth:`UwbNetwork.pair_model`), and the requester / responder as indices into ``vehicles``."""
+    vehicles = list(net.units)
+    col = {v: i for i, v in enumerate(vehicles)}
+    rows = []
+    for a, b in net.pairs:
+        p, model = net.units[a].profile, net.pair_model(a, b)
+        rows.append((p.nlos_detection_probability, model.oscillator_ppm * 1e-6, model.walk_ppm * 1e-6, p.max_range_m,
+                     p.quantization_m, p.noise_sigma_m, p.noise_ref_range_m, p.noise_range_exponent,
+                     p.packet_loss_probability, p.time_tag_sigma_s, p.multipath_max_m, model.bias_m))
+    vals = np.array(rows, dtype=float).reshape(-1, 12)
+    out: dict[str, Any] = dict(zip((*_PAIR_COLUMNS, "loss_p", "tag_sigma", "mp_max", "bias"), vals.T, strict=True))
+    out["veh_a"] = np.array([col[a] for a, _ in net.pairs], dtype=np.int64)
+    out["veh_b"] = np.array([col[b] for _, b in net.pairs], dtype=np.int64)
+    out["vehicles"] = vehicles
+    out["names"] = np.array(vehicles, dtype=object)
+    return out
+
+
 class UwbStream:
     """Chunked synthesis of a :class:`UwbNetwork`'s ranges: push the SUMO steps chunk by chunk.
 
@@ -774,6 +849,7 @@ class UwbStream:
         self.margin_s = 1.0 + 2.0 * self.max_tag_s  # truth kept before the first pending attempt
         self._max_gap_s = max_gap_s
         self._gm: list[tuple[float, float, float] | None] = [None] * n_pairs  # multipath (t, rho, x) carried
+        self._consts = _pair_constants(net)
         self._steps: list[TrafficStep] = []  # the truth window
         self._drift: dict[str, list[float]] = {v: [] for v in net.units}
         self._drift_started = False
@@ -825,17 +901,11 @@ class UwbStream:
         max_gap_s = self._max_gap_s if self._max_gap_s is not None else 0.0
         tracks = self._tracks(steps)
         drift = {v: np.asarray(d, dtype=float) for v, d in self._drift.items()}
-        parts: list[dict[str, Any]] = []
-        for j, ((a, b), dr) in enumerate(zip(self.net.pairs, self._draws, strict=True)):
-            drawn = dr.take(limit)
-            rec = self._pair_chunk(j, a, b, drawn, tracks, t_steps, max_gap_s, drift)
-            if rec is not None:
-                parts.append(rec)
+        drawn = [dr.take(limit) for dr in self._draws]
+        cat = self._chunk(drawn, tracks, t_steps, max_gap_s, drift)
         self._synth_until = limit
-        if parts:
-            cat = {k: np.concatenate([p[k] for p in parts]) for k in parts[0] if k not in ("a", "b")}
-            a_ids = np.concatenate([p["a"] for p in parts])
-            b_ids = np.concatenate([p["b"] for p in parts])
+        if cat is not None:
+            a_ids, b_ids = cat.pop("a"), cat.pop("b")
             keep = UwbNetwork._occlusion_filter(cat, a_ids, b_ids, steps, t_steps, self.occlusion)
             self._pending.append(_finish_unsorted(cat, a_ids, b_ids, keep, self.net))
         # Ranges whose t_log cannot be preceded by a later attempt's (t_true > limit).
@@ -866,41 +936,60 @@ class UwbStream:
                     rows[vid].append(vs)
         return _tracks_from_states(rows, self.net.antenna_offsets_body_m)
 
-    def _pair_chunk(self, j: int, a: str, b: str, drawn: tuple, tracks: dict[str, _Track], t_steps: F64,
-                    max_gap_s: float, drift: dict[str, F64]) -> dict[str, Any] | None:
-        t_true, u_lost, nlos_draw, z_tag, z_noise, z_mp = drawn
-        n = t_true.shape[0]
-        if n == 0 or a not in tracks or b not in tracks:
+    def _chunk(self, drawn: list[tuple], tracks: dict[str, _Track], t_steps: F64, max_gap_s: float,
+               drift: dict[str, F64]) -> dict[str, Any] | None:
+        """Geometry and error inputs of the chunk's attempts of every pair, pair-major (one column per key).
+
+        Pairs whose radios have no truth in the window are left out (their draws are used up all
+        the same). The truth of each vehicle is interpolated once for all its attempts and the
+        per-pair settings are gathered by pair index: elementwise the numbers of a pair-by-pair
+        synthesis; only the multipath Gauss-Markov recursion runs pair by pair.
+        """
+        c = self._consts
+        use = [j for j, (a, b) in enumerate(self.net.pairs) if drawn[j][0].shape[0] and a in tracks and b in tracks]
+        if not use:
             return None
-        p = self.net.units[a].profile
-        lost = u_lost < p.packet_loss_probability
-        tag_err = p.time_tag_sigma_s * z_tag
-        ta, tb = tracks[a], tracks[b]
-        present = ta.valid(t_true, max_gap_s) & tb.valid(t_true, max_gap_s)
-        ea, xa = ta.at(t_true)
-        eb, xb = tb.at(t_true)
+        n_j = np.array([drawn[j][0].shape[0] for j in use], dtype=np.int64)
+        pair = np.repeat(np.array(use, dtype=np.int64), n_j)
+        t_true, u_lost, nlos_draw, z_tag, z_noise, z_mp = (np.concatenate([drawn[j][q] for j in use]) for q in range(6))
+        attempt = np.concatenate([np.arange(self._draws[j].done - n, self._draws[j].done, dtype=np.int64)
+                                  for j, n in zip(use, n_j.tolist(), strict=True)])
+        lost = u_lost < c["loss_p"][pair]
+        t_log = t_true + c["tag_sigma"][pair] * z_tag
+        m = t_true.shape[0]
+        present = np.ones(m, dtype=bool)
+        ends = []  # (ECEF at t_true, net XYZ at t_true, ECEF at t_log, drift at t_true) of a, then of b
+        for side in (c["veh_a"][pair], c["veh_b"][pair]):
+            e, x, e_log, dr = np.empty((m, 3)), np.empty((m, 3)), np.empty((m, 3)), np.empty(m)
+            for vi in np.unique(side).tolist():
+                vid = c["vehicles"][vi]
+                tr, sel = tracks[vid], np.flatnonzero(side == vi)
+                br = tr.bracket(t_true[sel])
+                present[sel] &= tr.valid(t_true[sel], max_gap_s, br)
+                e[sel], x[sel] = tr.at(t_true[sel], br=br)
+                e_log[sel], _ = tr.at(t_log[sel], with_xyz=False)
+                dr[sel] = np.interp(t_true[sel], t_steps, drift[vid])
+            ends.append((e, x, e_log, dr))
+        (ea, xa, ea_l, dr_a), (eb, xb, eb_l, dr_b) = ends
         rho_true = np.linalg.norm(eb - ea, axis=1)
-        t_log = t_true + tag_err
-        ea_l, _ = ta.at(t_log)
-        eb_l, _ = tb.at(t_log)
         rho_log = np.linalg.norm(eb_l - ea_l, axis=1)
-        mp, self._gm[j] = _gauss_markov_cont(t_true, rho_true, z_mp, p.multipath_sigma_m, p.multipath_tau_s,
-                                            p.multipath_decorrelation_m, self._gm[j])
-        mp = np.clip(mp, -p.multipath_max_m, p.multipath_max_m)
-        model = self.net.pair_model(a, b)
-        bias = model.bias_m + np.interp(t_true, t_steps, drift[a]) - np.interp(t_true, t_steps, drift[b])
-        first = self._draws[j].done - n
-        return {
-            "a": np.full(n, a, dtype=object), "b": np.full(n, b, dtype=object),
-            "pair": np.full(n, j, dtype=np.int64), "attempt": np.arange(first, first + n, dtype=np.int64),
+        mp = np.empty(m)
+        lo = 0
+        for j, n in zip(use, n_j.tolist(), strict=True):
+            sl = slice(lo, lo + n)
+            p = self.net.units[self.net.pairs[j][0]].profile
+            mp[sl], self._gm[j] = _gauss_markov_cont(t_true[sl], rho_true[sl], z_mp[sl], p.multipath_sigma_m,
+                                                    p.multipath_tau_s, p.multipath_decorrelation_m, self._gm[j])
+            lo += n
+        mp = np.clip(mp, -c["mp_max"][pair], c["mp_max"][pair])
+        bias = c["bias"][pair] + dr_a - dr_b
+        out = {
+            "a": c["names"][c["veh_a"][pair]], "b": c["names"][c["veh_b"][pair]], "pair": pair, "attempt": attempt,
             "t_true": t_true, "t_log": t_log, "rho_true": rho_true, "rho_log": rho_log, "xyz_a": xa, "xyz_b": xb,
-            "present": present & ~lost, "nlos_draw": nlos_draw, "nlos_p": np.full(n, p.nlos_detection_probability),
-            "z_noise": z_noise, "multipath": mp, "bias": bias,
-            "osc": np.full(n, model.oscillator_ppm * 1e-6), "walk_k": np.full(n, model.walk_ppm * 1e-6),
-            "max_range": np.full(n, p.max_range_m), "quant": np.full(n, p.quantization_m),
-            "noise_sigma": np.full(n, p.noise_sigma_m), "noise_ref": np.full(n, p.noise_ref_range_m),
-            "noise_exp": np.full(n, p.noise_range_exponent),
+            "present": present & ~lost, "nlos_draw": nlos_draw, "z_noise": z_noise, "multipath": mp, "bias": bias,
         }
+        out.update({k: c[k][pair] for k in _PAIR_COLUMNS})
+        return out
 
     def _emit(self, horizon: float) -> UwbRanges:
         if not self._pending:
@@ -950,9 +1039,17 @@ def _gauss_markov(t: F64, rho: F64, z: F64, sigma: float, tau_s: float, decorr_m
     w = np.sqrt(1.0 - phi * phi) * sigma
     x = np.empty_like(t)
     x[0] = sigma * z[0]
-    for k in range(1, t.shape[0]):
-        x[k] = phi[k - 1] * x[k - 1] + w[k - 1] * z[k]
+    _gauss_markov_kernel(x[0], phi, w, z[1:], x[1:])
     return x
+
+
+@njit(cache=True, nogil=True)
+def _gauss_markov_kernel(x_prev, phi, w, z, out):  # pragma: no cover - compiled
+    """The recursion ``x_k = phi_k x_{k-1} + w_k z_k`` from ``x_prev`` into ``out`` (the Python loop
+    it replaces evaluated the same two products and one sum per sample)."""
+    for k in range(z.shape[0]):
+        x_prev = phi[k] * x_prev + w[k] * z[k]
+        out[k] = x_prev
 
 
 def _gauss_markov_cont(t: F64, rho: F64, z: F64, sigma: float, tau_s: float, decorr_m: float,
@@ -971,10 +1068,7 @@ def _gauss_markov_cont(t: F64, rho: F64, z: F64, sigma: float, tau_s: float, dec
         phi = np.exp(-np.diff(tt) / tau_s - np.abs(np.diff(rr)) / decorr_m)
         w = np.sqrt(1.0 - phi * phi) * sigma
         x = np.empty_like(t)
-        xp = prev[2]
-        for k in range(t.shape[0]):
-            xp = phi[k] * xp + w[k] * z[k]
-            x[k] = xp
+        _gauss_markov_kernel(prev[2], phi, w, z, x)
     return x, (float(t[-1]), float(rho[-1]), float(x[-1]))
 
 
@@ -1040,11 +1134,12 @@ def select_ranges(ranges: UwbRanges, mask: ArrayLike) -> UwbRanges:
     """The records of ``ranges`` where ``mask`` (bool or index array) selects."""
     m = np.asarray(mask)
     idx = np.flatnonzero(m) if m.dtype == bool else m.astype(np.intp)
+    pos = idx.tolist()
     return UwbRanges(
         t_s=ranges.t_s[idx],
         true_t_s=ranges.true_t_s[idx],
-        a=tuple(ranges.a[i] for i in idx),
-        b=tuple(ranges.b[i] for i in idx),
+        a=tuple([ranges.a[i] for i in pos]),
+        b=tuple([ranges.b[i] for i in pos]),
         range_m=ranges.range_m[idx],
         true_range_m=ranges.true_range_m[idx],
         los=ranges.los[idx],

@@ -63,7 +63,10 @@ per-building bounding-box screen: for worlds of hundreds of buildings that is se
 faster than the spatial-index queries. They evaluate the same floating-point expressions as
 the numpy/spatial-index formulations (``_building_hits_vectorized``, ``_sky_echo_vectorized``),
 which large worlds (``compiled_pairs_max``) and the rare segments that descend through a roof
-still use; the tests check that both give identical results.
+still use; the tests check that both give identical results. The vehicle-box test of links is
+compiled the same way (``_box_hits_kernel``, reference ``_box_hits_vectorized``), and
+:meth:`OcclusionGeometry.links_many` answers the links of many time steps, each against its own
+step's vehicle boxes, in one call (a whole UWB or bearing chunk).
 """
 
 from __future__ import annotations
@@ -382,6 +385,7 @@ def warm_up() -> None:
                            np.zeros(1), 0.0, False)
     _sky_echo_candidates_kernel(p, i0, one, one, one, one, one, 1.0, w, one, one, w, one, one)
     _in_any_box_kernel(p, np.zeros((1, 4)), i0, np.zeros(1), 0.0)
+    _box_hits_kernel(p, p, np.zeros((1, 6)), one, one, np.array([0, 1]), i0, np.zeros((1, 2), dtype=np.int64))
 
 
 class OcclusionGeometry:
@@ -755,24 +759,33 @@ class OcclusionGeometry:
             raise ValueError(f"antenna_index, azimuth and elevation must be (n,), got {ai.shape}, {az.shape}, {el.shape}")
         n = az.size
         xa = ants[ai] if n else np.zeros((0, 3))
-        el_c = np.clip(el, -np.pi / 2 + 1e-9, np.pi / 2 - 1e-9)
-        u = np.column_stack([np.sin(az), np.cos(az)])
+        el_c = np.minimum(np.maximum(el, -np.pi / 2 + 1e-9), np.pi / 2 - 1e-9)  # np.clip without its overhead
+        u = np.empty((n, 2))
+        u[:, 0], u[:, 1] = np.sin(az), np.cos(az)
         tan_el = np.tan(el_c)
         cos_el = np.cos(el_c)
-        p1 = np.column_stack([xa[:, :2] + max_dist_m * u, xa[:, 2] + max_dist_m * tan_el])
+        p1 = np.empty((n, 3))
+        p1[:, :2] = xa[:, :2] + max_dist_m * u
+        p1[:, 2] = xa[:, 2] + max_dist_m * tan_el
 
         t_hit, b_hit = self._building_hits(xa, p1)
         blocked = np.isfinite(t_hit)
-        blocker_id = np.where(blocked, self._b_ids[np.maximum(b_hit, 0)] if self._b_ids.size else "", "")
+        if blocked.any():
+            blocker_id = np.where(blocked, self._b_ids[np.maximum(b_hit, 0)] if self._b_ids.size else "", "")
+        else:
+            blocker_id = np.full(n, "")
 
-        path_h = np.zeros(n)
-        loss_h = np.zeros(n)
         if self._f_h.size:
+            path_h = np.zeros(n)
+            loss_h = np.zeros(n)
             for a in np.unique(ai):
                 sel = np.flatnonzero(ai == a)
                 path_h[sel], loss_h[sel] = self._foliage_horizontal(ants[a], u[sel], tan_el[sel], max_dist_m)
-        foliage_path_m = path_h / cos_el
-        foliage_loss_db = loss_h / cos_el
+            foliage_path_m = path_h / cos_el
+            foliage_loss_db = loss_h / cos_el
+        else:  # no canopy: 0 / cos(el) = 0
+            foliage_path_m = np.zeros(n)
+            foliage_loss_db = np.zeros(n)
 
         echo = np.full(n, np.nan)
         if blocked.any() and self._w_len.size:
@@ -1003,23 +1016,45 @@ class OcclusionGeometry:
             See :class:`LinkResult`. A vehicle blocks when the segment passes through its box
             (3-D slab clipping, Liang-Barsky); ties between kinds go to the nearer entry.
         """
+        return self.links_many(p0_xyz_m, p1_xyz_m, vehicle_boxes, None, None, exclude)
+
+    def links_many(
+        self,
+        p0_xyz_m: ArrayLike,
+        p1_xyz_m: ArrayLike,
+        vehicle_boxes: ArrayLike | None,
+        box_first: ArrayLike | None,
+        box_set: ArrayLike | None,
+        exclude: ArrayLike | None = None,
+    ) -> LinkResult:
+        """:meth:`links` for links that see different vehicle boxes (the links of many time steps).
+
+        ``vehicle_boxes`` rows ``box_first[g]:box_first[g + 1]`` form box set ``g``; link ``i``
+        is tested against set ``box_set[i]`` only, and its ``exclude`` rows (and the returned
+        ``blocker_id`` of a vehicle) count from the start of that set. ``box_first`` and
+        ``box_set`` None: one set, every row (:meth:`links`). Per link, exactly what
+        :meth:`links` gives with that set's boxes.
+        """
         p0 = np.atleast_2d(np.asarray(p0_xyz_m, dtype=float))
         p1 = np.atleast_2d(np.asarray(p1_xyz_m, dtype=float))
         if p0.shape != p1.shape or p0.shape[-1] != 3:
             raise ValueError(f"p0 and p1 must both be (m, 3), got {p0.shape} and {p1.shape}")
         m = len(p0)
         t_b, b_idx = self._building_hits(p0, p1)
-        t_v, v_idx = _box_hits(p0, p1, vehicle_boxes, exclude)
+        t_v, v_idx = _box_hits(p0, p1, vehicle_boxes, exclude, box_first, box_set)
         use_v = t_v < t_b
         t_hit = np.where(use_v, t_v, t_b)
         blocked = np.isfinite(t_hit)
+        refl = np.full(m, np.nan)
+        if not blocked.any():
+            return LinkResult(blocked=blocked, blocker_kind=np.full(m, ""), blocker_id=np.full(m, ""),
+                              hit_distance_m=refl.copy(), reflection_excess_m=refl)
         kind = np.where(blocked, np.where(use_v, "vehicle", "building"), "")
         bid = self._b_ids[np.maximum(b_idx, 0)] if self._b_ids.size else np.full(m, "")
         blocker_id = np.where(blocked, np.where(use_v, v_idx.astype(str), bid), "")
         length = np.linalg.norm(p1 - p0, axis=1)
         hit = np.where(blocked, np.where(blocked, t_hit, 0.0) * length, np.nan)
-        refl = np.full(m, np.nan)
-        if blocked.any() and self._w_len.size:
+        if self._w_len.size:
             idx = np.flatnonzero(blocked)
             refl[idx] = self._link_reflection(p0[idx], p1[idx])
         return LinkResult(
@@ -1064,15 +1099,93 @@ class OcclusionGeometry:
 
 
 def _box_hits(
-    p0: FloatArray, p1: FloatArray, boxes: ArrayLike | None, exclude: ArrayLike | None
+    p0: FloatArray,
+    p1: FloatArray,
+    boxes: ArrayLike | None,
+    exclude: ArrayLike | None,
+    box_first: ArrayLike | None = None,
+    box_set: ArrayLike | None = None,
 ) -> tuple[FloatArray, NDArray[np.int64]]:
     """First entry parameter t (inf if none) of segments into vehicle boxes, and the box row.
 
     Slab clipping in each box's frame (forward = (sin a, cos a), left = (-cos a, sin a)):
     the segment is inside on ``t`` in the intersection of ``[0, 1]`` with every axis'
     slab interval; it passes through the box when that interval is non-empty (touching
-    a face only does not count).
+    a face only does not count). With ``box_first``/``box_set`` (see
+    :meth:`OcclusionGeometry.links_many`) segment ``i`` sees only the rows of its set, and
+    ``exclude`` and the returned row count from the start of that set. Compiled
+    (:func:`_box_hits_kernel`); :func:`_box_hits_vectorized` is the numpy reference.
     """
+    m = len(p0)
+    if boxes is None:
+        return np.full(m, np.inf), np.full(m, -1, dtype=np.int64)
+    bx = np.atleast_2d(np.asarray(boxes, dtype=float))
+    if bx.size == 0:
+        return np.full(m, np.inf), np.full(m, -1, dtype=np.int64)
+    if bx.ndim != 2 or bx.shape[1] != 6:
+        raise ValueError(f"vehicle_boxes must be (v, 6), got {bx.shape}")
+    if box_first is None:
+        first = np.array([0, len(bx)], dtype=np.int64)
+        group = np.zeros(m, dtype=np.int64)
+    else:
+        first = np.asarray(box_first, dtype=np.int64)
+        group = np.asarray(box_set, dtype=np.int64).reshape(m)
+    ex = (np.full((m, 0), -1, dtype=np.int64) if exclude is None
+          else np.ascontiguousarray(np.asarray(exclude, dtype=np.int64).reshape(m, -1)))
+    # The trigonometry stays in numpy (its sin/cos, not the compiled libm's).
+    return _box_hits_kernel(np.ascontiguousarray(p0, dtype=float), np.ascontiguousarray(p1, dtype=float),
+                            np.ascontiguousarray(bx), np.sin(bx[:, 2]), np.cos(bx[:, 2]), first, group, ex)
+
+
+@njit(**_JIT)
+def _box_hits_kernel(p0, p1, bx, sin_a, cos_a, first, group, exclude):  # pragma: no cover - compiled
+    """:func:`_box_hits_vectorized` per segment over its own box set, with the same floating-point
+    expressions (slab offsets ``rel . u``, ``t = (bound - q0) / dq``, the parallel-slab rule, the
+    lowest-row tie break of ``argmin``)."""
+    m = p0.shape[0]
+    t_first = np.full(m, np.inf)
+    row = np.full(m, -1, dtype=np.int64)
+    for i in range(m):
+        dx, dy, dz = p1[i, 0] - p0[i, 0], p1[i, 1] - p0[i, 1], p1[i, 2] - p0[i, 2]
+        lo_row = first[group[i]]
+        for j in range(first[group[i] + 1] - lo_row):
+            r = lo_row + j
+            skip = False
+            for c in range(exclude.shape[1]):
+                if exclude[i, c] == j:
+                    skip = True
+            if skip:
+                continue
+            rx, ry = p0[i, 0] - bx[r, 0], p0[i, 1] - bx[r, 1]
+            s, co = sin_a[r], cos_a[r]
+            t_lo, t_hi = 0.0, 1.0
+            for axis in range(3):
+                if axis == 0:  # forward (sin a, cos a)
+                    q0, dq, lo, hi = rx * s + ry * co, dx * s + dy * co, -(0.5 * bx[r, 3]), 0.5 * bx[r, 3]
+                elif axis == 1:  # left (-cos a, sin a)
+                    q0, dq, lo, hi = rx * -co + ry * s, dx * -co + dy * s, -(0.5 * bx[r, 4]), 0.5 * bx[r, 4]
+                else:  # height above the ground
+                    q0, dq, lo, hi = p0[i, 2], dz, 0.0, bx[r, 5]
+                if dq == 0.0:
+                    inside = q0 > lo and q0 < hi
+                    tmin = -np.inf if inside else np.inf
+                    tmax = np.inf if inside else -np.inf
+                else:
+                    t1 = (lo - q0) / dq
+                    t2 = (hi - q0) / dq
+                    tmin, tmax = min(t1, t2), max(t1, t2)
+                t_lo = max(t_lo, tmin)
+                t_hi = min(t_hi, tmax)
+            if t_lo < t_hi and t_lo < t_first[i]:
+                t_first[i] = t_lo
+                row[i] = j
+    return t_first, row
+
+
+def _box_hits_vectorized(
+    p0: FloatArray, p1: FloatArray, boxes: ArrayLike | None, exclude: ArrayLike | None
+) -> tuple[FloatArray, NDArray[np.int64]]:
+    """:func:`_box_hits` over one box set with numpy (reference implementation)."""
     m = len(p0)
     if boxes is None:
         return np.full(m, np.inf), np.full(m, -1, dtype=np.int64)
