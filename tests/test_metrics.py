@@ -53,3 +53,39 @@ def test_nees_of_consistent_gaussian_is_chi2():
     vals = [nees(l_chol @ rng.standard_normal(3), p) for _ in range(4000)]
     # mean of 4000 chi2(3) samples: sd = sqrt(6/4000) = 0.039; 4 sigma -> 0.15 (false failure ~6e-5)
     assert abs(np.mean(vals) - 3.0) < 0.16
+
+
+def test_compiled_epoch_errors_equal_the_numpy_definitions():
+    """The pipeline's per-epoch numbers come from one compiled call
+    (v2v.metrics.errors.epoch_errors). Check it against the definitions it replaces
+    (frames.ecef_to_enu, lead_frame_errors, lead_frame_sigmas, nees) on random clusters:
+    the same formulas summed in the same order, so they may differ only where BLAS fuses a
+    multiply-add: a few ulps of the largest term (ECEF differences ~1e3 m -> ~1e-13 m;
+    covariances ~1 m^2 -> ~1e-16). Tolerance 1e-12 relative to each quantity's scale."""
+    from v2v.frames import ecef_to_enu, ecef_to_enu_rotation, geodetic_to_ecef
+    from v2v.metrics.errors import EPOCH_COLUMNS, epoch_errors, lead_frame_errors, lead_frame_sigmas, nees
+
+    rng = np.random.default_rng(3)
+    for _ in range(20):
+        n = int(rng.integers(1, 6))
+        lat, lon, az = rng.uniform(-1.4, 1.4), rng.uniform(-3.1, 3.1), rng.uniform(-np.pi, np.pi)
+        lead = np.asarray(geodetic_to_ecef(lat, lon, 1000.0))
+        ecef = lead + rng.normal(scale=50.0, size=(n, 3))
+        nx = 8 * n + 3
+        x = rng.normal(scale=30.0, size=nx)
+        a = rng.normal(size=(nx, nx))
+        P = a @ a.T + np.eye(nx)
+        ipos, ivel = 8 * np.arange(n), 8 * np.arange(n) + 3
+        vel, lead_vel = rng.normal(size=(n, 3)), rng.normal(size=3)
+        ready = rng.random(n) < 0.7
+        out = epoch_errors(x, P, ipos, ivel, ecef, lead, ecef_to_enu_rotation(lat, lon), vel, lead_vel,
+                           float(np.sin(az)), float(np.cos(az)), ready)
+        assert out.shape == (n, len(EPOCH_COLUMNS))
+        for k in range(n):
+            true = ecef_to_enu(ecef[k], lat, lon, lead)
+            est = x[ipos[k]:ipos[k] + 3]
+            cov = P[ipos[k]:ipos[k] + 3, ipos[k]:ipos[k] + 3]
+            ref = np.concatenate([true, est, vel[k] - lead_vel, x[ivel[k]:ivel[k] + 3],
+                                  lead_frame_errors(est, true, az), lead_frame_sigmas(cov, az),
+                                  [cov[0, 0], cov[0, 1], cov[1, 1], nees(est - true, cov) if ready[k] else np.nan]])
+            np.testing.assert_allclose(out[k], ref, rtol=1e-12, atol=1e-12 * 100.0, equal_nan=True)

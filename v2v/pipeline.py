@@ -38,7 +38,7 @@ from v2v.estimation.phase import PhaseConfig, wrong_fix
 from v2v.estimation.process import ProcessNoiseConfig
 from v2v.exchange import Message, V2VExchange
 from v2v.frames import ecef_to_enu_rotation
-from v2v.metrics.errors import lead_frame_errors, lead_frame_rotation
+from v2v.metrics.errors import EPOCH_COLUMNS, epoch_errors
 from v2v.sensors.measurements import Bearings, GnssEpoch, UwbRanges
 from v2v.traffic.snapshot import TrafficStep
 
@@ -735,37 +735,23 @@ def _epoch_rows(name: str, t_s: float, ekf: ClusterEkf, step: TrafficStep, lead:
                 infos: Iterable[UpdateInfo]) -> list[dict[str, Any]]:
     """One row per cluster vehicle at output epoch ``t_s``: truth and estimate relative to the
     lead (ENU), errors and 1-sigma in the lead's frame (along, across-left, up), NEES of the
-    position, update counts. The numbers of all vehicles are computed as arrays at once."""
+    position, update counts; the numbers of all vehicles from one compiled call
+    (:func:`v2v.metrics.errors.epoch_errors`)."""
     lead_st = step.vehicles[lead]
     x, P = ekf.x, ekf.P
     lay = ekf.layout
-    r_lead = lead_frame_rotation(lead_st.azimuth_rad)
     counts = _update_counts(infos)
     est_v = [v for v in vehicles if v in step.vehicles and v in lay.vehicles]
     if est_v:
         sts = [step.vehicles[v] for v in est_v]
-        pos = np.array([lay.position(v).start for v in est_v])
-        vel = np.array([lay.velocity(v).start for v in est_v])
-        ip = pos[:, None] + np.arange(3)
-        est = x[ip]  # (n, 3)
-        est_vel = x[vel[:, None] + np.arange(3)]
-        cov = P[ip[:, :, None], ip[:, None, :]]  # (n, 3, 3)
-        # stacked (n, 1, 3) @ (3, 3) products: the same BLAS call per vehicle as the 1-vehicle
-        # expressions (frames.ecef_to_enu, R P R^T, e^T P^-1 e), so the same bits
-        d = np.array([st.ecef_m for st in sts]) - np.asarray(lead_st.ecef_m, dtype=float)
-        true_rel = (d[:, None, :] @ ecef_to_enu_rotation(lead_st.lat_rad, lead_st.lon_rad).T)[:, 0]
-        true_vel = np.array([st.vel_enu_mps for st in sts]) - np.asarray(lead_st.vel_enu_mps)
-        err = lead_frame_errors(est, true_rel, lead_st.azimuth_rad)
-        sig = np.sqrt(np.clip(np.diagonal(r_lead @ cov @ r_lead.T, axis1=1, axis2=2), 0.0, None))
-        e_enu = est - true_rel
-        ready = np.array([ekf.is_initialized(v) for v in est_v])
-        nees = np.full(len(est_v), np.nan)
-        if ready.any():
-            er_ = e_enu[ready][:, None, :]
-            nees[ready] = (er_ @ np.linalg.solve(cov[ready], er_.transpose(0, 2, 1)))[:, 0, 0]
-        num = dict(zip(est_v, zip(true_rel.tolist(), est.tolist(), true_vel.tolist(), est_vel.tolist(), err.tolist(),
-                                  sig.tolist(), cov[:, 0, 0].tolist(), cov[:, 0, 1].tolist(), cov[:, 1, 1].tolist(),
-                                  nees.tolist(), ready.tolist(), strict=True), strict=True))
+        a = float(lead_st.azimuth_rad)
+        nums = epoch_errors(
+            x, P, np.array([lay.position(v).start for v in est_v]), np.array([lay.velocity(v).start for v in est_v]),
+            np.array([st.ecef_m for st in sts], dtype=float), np.asarray(lead_st.ecef_m, dtype=float),
+            ecef_to_enu_rotation(lead_st.lat_rad, lead_st.lon_rad), np.array([st.vel_enu_mps for st in sts], dtype=float),
+            np.asarray(lead_st.vel_enu_mps, dtype=float), float(np.sin(a)), float(np.cos(a)),
+            np.array([ekf.is_initialized(v) for v in est_v]))
+        num = dict(zip(est_v, nums.tolist(), strict=True))
     kinds = ("pr", "doppler", "uwb", "bearing") + (("phase",) if ekf.config.phase is not None else ())
     integrity = getattr(ekf, "integrity_available", {})
     rows = []
@@ -776,20 +762,10 @@ def _epoch_rows(name: str, t_s: float, ekf: ClusterEkf, step: TrafficStep, lead:
         if v not in lay.vehicles:  # left the cluster (as the lead sees it): a row without an estimate
             rows.append({"t_s": t_s, "solution": name, "vehicle": v, "initialized": False})
             continue
-        tr, es, tv, ev, er, sg, cee, cen, cnn, ns, rd = num[v]
         c = counts.get(v, {})
-        row = {
-            "t_s": t_s, "solution": name, "vehicle": v, "initialized": rd,
-            "true_e_m": tr[0], "true_n_m": tr[1], "true_u_m": tr[2],
-            "est_e_m": es[0], "est_n_m": es[1], "est_u_m": es[2],
-            "true_ve_mps": tv[0], "true_vn_mps": tv[1], "true_vu_mps": tv[2],
-            "est_ve_mps": ev[0], "est_vn_mps": ev[1], "est_vu_mps": ev[2],
-            "along_err_m": er[0], "across_err_m": er[1], "up_err_m": er[2],
-            "sigma_along_m": sg[0], "sigma_across_m": sg[1], "sigma_up_m": sg[2],
-            "cov_ee_m2": cee, "cov_en_m2": cen, "cov_nn_m2": cnn,
-            "nees_pos": ns,
-            "true_lane_index": st.lane_index, "lead_lane_index": lead_st.lane_index, "lane_width_m": st.lane_width_m,
-        }
+        row = {"t_s": t_s, "solution": name, "vehicle": v, "initialized": ekf.is_initialized(v),
+               **dict(zip(EPOCH_COLUMNS, num[v], strict=True)),
+               "true_lane_index": st.lane_index, "lead_lane_index": lead_st.lane_index, "lane_width_m": st.lane_width_m}
         for kind in kinds:
             row[f"used_{kind}"] = c.get(f"used_{kind}", 0)
             row[f"rejected_{kind}"] = c.get(f"rejected_{kind}", 0)

@@ -679,6 +679,11 @@ class ClusterFilterBase(ABC):
         w = self._nis_window.setdefault(v, deque(maxlen=self.config.divergence_window))
         w.append((info.nis, info.accepted))
 
+    def _record_tests(self, v: str, infos: list[UpdateInfo]) -> None:
+        """:meth:`_record_test` of several records in order."""
+        w = self._nis_window.setdefault(v, deque(maxlen=self.config.divergence_window))
+        w.extend((info.nis, info.accepted) for info in infos)
+
     def window_mean_nis(self, v: str) -> float:
         """Mean NIS of the last ``divergence_window`` SD-pseudorange tests of ``v`` (NaN if none)."""
         w = self._nis_window.get(v)
@@ -699,8 +704,10 @@ class ClusterFilterBase(ABC):
         return n_rej > self.config.divergence_reject_fraction * len(w)
 
     def _position_sigma_m(self, v: str) -> float:
-        sl = self.layout.position(v)
-        return float(np.sqrt(max(float(np.trace(self._get_P()[sl, sl])), 0.0)))
+        i = self.layout.position(v).start
+        P = self._get_P()
+        tr = float(P[i, i]) + float(P[i + 1, i + 1]) + float(P[i + 2, i + 2])  # = np.trace, same order
+        return math.sqrt(max(tr, 0.0))
 
     def _reset_vehicle(self, v: str) -> None:
         """Back to the uninitialized prior; the next GNSS snapshot re-initializes the block."""
@@ -786,10 +793,10 @@ class ClusterFilterBase(ABC):
         seen: dict[int, list[tuple[str, int]]] = {}
         for v in ready:
             ep = epochs[v]
-            for i in np.flatnonzero(np.isfinite(ep.pseudorange_m)):
-                prn = int(ep.prn[i])
-                if prn not in lead_seen:
-                    seen.setdefault(prn, []).append((v, int(i)))
+            for i, prn, ok in zip(range(len(ep.prn)), ep.prn.tolist(), np.isfinite(ep.pseudorange_m).tolist(),
+                                  strict=True):
+                if ok and prn not in lead_seen:
+                    seen.setdefault(prn, []).append((v, i))
         jobs = []
         for prn, lst in seen.items():
             if len(lst) < 2:
@@ -1384,8 +1391,7 @@ class ClusterEkf(ClusterFilterBase):
             self.counters["screened_first_update"] = self.counters.get("screened_first_update", 0) + int(n_flagged)
         self.integrity_available[v] = bool(isolated)
         out = self._records(KIND_SD_PR, (v,), order, nu, s, st, ep.prn[iv].tolist())
-        for info in out:
-            self._record_test(v, info)
+        self._record_tests(v, out)
         return out
 
     def _sd_dopplers(self, v: str, geo: GnssGeometry, ep: GnssEpoch, lead_ep: GnssEpoch,
@@ -1413,6 +1419,9 @@ class ClusterEkf(ClusterFilterBase):
                  st: NDArray[np.int64], prns: list[int]) -> list[UpdateInfo]:
         """The records of one vehicle's GNSS batch (``prns`` indexed like the rows, the
         kernel outputs like ``order``): accepted ones built directly, the others by :meth:`_record`."""
+        if not st.any():  # all accepted (kernels.ACCEPTED == 0): the common case, no counters
+            return [UpdateInfo(kind, vehicles, nuk, sk, nuk * nuk / sk, True, prns[o])
+                    for o, nuk, sk in zip(order.tolist(), nu.tolist(), s.tolist(), strict=True)]
         out = []
         accepted = kernels.ACCEPTED
         for o, nuk, sk, stk in zip(order.tolist(), nu.tolist(), s.tolist(), st.tolist(), strict=True):
