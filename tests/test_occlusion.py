@@ -19,7 +19,7 @@ import pytest
 
 from v2v.errors import UserError
 from v2v.world.buildings import Building, FoliageArea, World, classify, load_polygons
-from v2v.world.occlusion import OcclusionGeometry
+from v2v.world.occlusion import OcclusionGeometry, _box_hits, _box_hits_vectorized
 
 ATOL_M = 1e-9
 DATA = Path(__file__).parent / "data"
@@ -594,3 +594,140 @@ def test_any_hit_mode_agrees_with_first_hit_on_blocked_or_clear():
         t_ref, _ = g._building_hits(p0, p1, **kw)
         np.testing.assert_array_equal(np.isfinite(t_any), np.isfinite(t_ref))
     print(f"{np.isfinite(t_full).mean():.2f} of {m} segments blocked")
+
+
+# ------------------------------------------------------------------ compiled/batched vs reference paths
+def _random_links_and_boxes(rng: np.random.Generator, trial: int, m: int, v: int):
+    """Links (ends 0-3 m high) and vehicle boxes in a 60 m square, with degenerate cases by trial:
+    level links, links of constant x, zero-length links, vertical links, links starting at a box
+    centre (inside it below its roof), headings exactly on the axes, and links running exactly
+    along the faces of axis-aligned boxes (touching, which does not count as passing through)."""
+    p0 = np.column_stack([rng.uniform(-30, 30, (m, 2)), rng.uniform(0, 3, m)])
+    p1 = np.column_stack([rng.uniform(-30, 30, (m, 2)), rng.uniform(0, 3, m)])
+    bx = np.column_stack([rng.uniform(-30, 30, (v, 2)), rng.uniform(0, 2 * np.pi, v), rng.uniform(3, 12, v),
+                          rng.uniform(1.5, 2.5, v), rng.uniform(1, 4, v)])
+    if trial % 3 == 0:
+        p1[:, 2] = p0[:, 2]
+    if trial % 5 == 0:
+        p1[:, 0] = p0[:, 0]
+    if trial % 11 == 0:
+        p1[: m // 2] = p0[: m // 2]
+    if trial % 13 == 0:
+        p1[: m // 2, :2] = p0[: m // 2, :2]
+    if trial % 4 == 0:
+        k = min(m, v)
+        p0[:k, :2] = bx[:k, :2]
+    if trial % 7 == 0:
+        bx[:, 2] = rng.choice([0.0, np.pi / 2, np.pi, 3 * np.pi / 2, 2 * np.pi], v)
+    if trial % 17 == 0:
+        # Integer centres, heading 0, width 2 m: the face x = cx + 1 is exact; links along it.
+        bx[:, :2] = np.round(bx[:, :2])
+        bx[:, 2], bx[:, 4] = 0.0, 2.0
+        k = min(m, v)
+        p0[:k, 0] = p1[:k, 0] = bx[:k, 0] + 1.0
+    return p0, p1, bx
+
+
+def test_compiled_box_hits_equal_numpy_reference():
+    """Compiled vehicle-box test ``_box_hits`` against the kept numpy reference ``_box_hits_vectorized``.
+
+    600 seeded random cases (1-30 links, 1-25 boxes each, with and without ``exclude``) including
+    the degenerate geometries of :func:`_random_links_and_boxes`. Equality, not closeness: the
+    kernel evaluates the same floating-point expressions in the same order (slab offsets
+    ``rel . u``, ``t = (bound - q0) / dq``, the parallel-slab rule, numpy's sin/cos of the
+    heading, the lowest-row tie break of ``argmin``), so every entry parameter and box row must be
+    bit-identical; any difference means the two decide a case differently, not rounding.
+    """
+    rng = np.random.default_rng(5)
+    n_hit = n_miss = 0
+    for trial in range(600):
+        m, v = int(rng.integers(1, 31)), int(rng.integers(1, 26))
+        p0, p1, bx = _random_links_and_boxes(rng, trial, m, v)
+        ex = rng.integers(-1, v, (m, int(rng.integers(1, 4)))) if trial % 2 else None
+        t_ref, row_ref = _box_hits_vectorized(p0, p1, bx, ex)
+        t, row = _box_hits(p0, p1, bx, ex)
+        np.testing.assert_array_equal(t, t_ref, err_msg=f"trial {trial}")
+        np.testing.assert_array_equal(row, row_ref, err_msg=f"trial {trial}")
+        n_hit += int(np.isfinite(t).sum())
+        n_miss += int(np.isinf(t).sum())
+    assert n_hit > 1000 and n_miss > 1000  # both outcomes well exercised
+    for none_or_empty in (None, np.zeros((0, 6))):
+        t, row = _box_hits(p0, p1, none_or_empty, None)
+        assert np.isinf(t).all() and (row == -1).all()
+
+
+def test_compiled_box_hits_per_box_set_equal_reference_per_set():
+    """``_box_hits`` with ``box_first``/``box_set`` (links of many steps, each against its own
+    step's boxes; ``exclude`` and the returned row count from the start of that set) against
+    ``_box_hits_vectorized`` called set by set. 40 sets of 0-12 boxes (empty sets included).
+    Equality for the reason of :func:`test_compiled_box_hits_equal_numpy_reference`: per link the
+    kernel does exactly the single-set computation on its set's rows."""
+    rng = np.random.default_rng(8)
+    n_sets = 40
+    sizes = rng.integers(0, 13, n_sets)
+    sizes[[3, 17]] = 0
+    first = np.concatenate([[0], np.cumsum(sizes)])
+    _, _, boxes = _random_links_and_boxes(rng, 7, 1, int(first[-1]))
+    m = 800
+    p0, p1, _ = _random_links_and_boxes(rng, 1, m, 1)
+    p0[::9] = p1[::9]  # some zero-length links
+    box_set = rng.integers(0, n_sets, m)
+    ex = np.column_stack([rng.integers(-1, np.maximum(sizes[box_set], 1)) for _ in range(2)])
+    t, row = _box_hits(p0, p1, boxes, ex, first, box_set)
+    for g in range(n_sets):
+        sel = np.flatnonzero(box_set == g)
+        t_ref, row_ref = _box_hits_vectorized(p0[sel], p1[sel], boxes[first[g]:first[g + 1]], ex[sel])
+        np.testing.assert_array_equal(t[sel], t_ref, err_msg=f"set {g}")
+        np.testing.assert_array_equal(row[sel], row_ref, err_msg=f"set {g}")
+    assert 100 < np.isfinite(t).sum() < m - 100
+    assert np.isinf(t[np.isin(box_set, [3, 17])]).all()
+
+
+def _street_corner_buildings(rng: np.random.Generator, nb: int = 15) -> list[Building]:
+    cen = rng.uniform(-70, 70, (nb, 2))
+    half = rng.uniform(3, 15, (nb, 2))
+    ang = rng.uniform(0, np.pi, nb)
+    h = rng.uniform(4, 40, nb)
+    return [building(f"b{i}", _rotated_rect(cen[i], half[i], ang[i]), h[i]) for i in range(nb)]
+
+
+@pytest.mark.parametrize("compiled", [True, False], ids=["compiled", "numpy"])
+def test_links_many_equals_links_per_step(compiled):
+    """``links_many`` over the links of 30 steps, each against its own step's vehicle boxes, must
+    give exactly what ``links`` gives step by step with that step's boxes (blocked, kind, id, hit
+    distance, reflection excess). Seeded scene: 15 rotated buildings, 0-10 boxes per step (steps
+    without boxes call ``links`` with None, as the sensors do), ends 0.5-4 m high. Both building
+    paths: the compiled kernels and the numpy/spatial-index formulation (``compiled_pairs_max =
+    0``). Equality, not closeness: every result is per link (no quantity mixes links), so batching
+    changes only which links are evaluated together, never the floating-point operations of a link.
+    """
+    rng = np.random.default_rng(31)
+    g = geometry(*_street_corner_buildings(rng))
+    if not compiled:
+        g.compiled_pairs_max = 0
+    n_steps = 30
+    sizes = rng.integers(0, 11, n_steps)
+    sizes[[0, 12]] = 0
+    first = np.concatenate([[0], np.cumsum(sizes)])
+    boxes = np.column_stack([rng.uniform(-60, 60, (first[-1], 2)), rng.uniform(0, 2 * np.pi, first[-1]),
+                             rng.uniform(4, 12, first[-1]), rng.uniform(1.7, 2.5, first[-1]),
+                             rng.uniform(1.4, 4.0, first[-1])])
+    n_links = rng.integers(0, 25, n_steps)
+    step = np.repeat(np.arange(n_steps), n_links)
+    m = step.size
+    p0 = np.column_stack([rng.uniform(-60, 60, (m, 2)), rng.uniform(0.5, 4, m)])
+    p1 = np.column_stack([rng.uniform(-60, 60, (m, 2)), rng.uniform(0.5, 4, m)])
+    ex = np.column_stack([rng.integers(-1, np.maximum(sizes[step], 1)) for _ in range(2)])
+    r = g.links_many(p0, p1, boxes, first, step, ex)
+    fields = ("blocked", "blocker_kind", "blocker_id", "hit_distance_m", "reflection_excess_m")
+    for s in range(n_steps):
+        sel = np.flatnonzero(step == s)
+        if sel.size == 0:
+            continue  # the sensors never ask about zero links
+        bs = boxes[first[s]:first[s + 1]]
+        ref = g.links(p0[sel], p1[sel], bs if len(bs) else None, ex[sel])
+        for f in fields:
+            np.testing.assert_array_equal(getattr(r, f)[sel], getattr(ref, f), err_msg=f"step {s}, {f}")
+    kinds = set(r.blocker_kind.tolist())
+    assert {"", "building", "vehicle"} <= kinds
+    assert np.isfinite(r.reflection_excess_m).sum() > 20  # the reflection search is exercised

@@ -1117,7 +1117,7 @@ def _box_hits(
     (:func:`_box_hits_kernel`); :func:`_box_hits_vectorized` is the numpy reference.
     """
     m = len(p0)
-    if boxes is None:
+    if boxes is None or m == 0:  # no boxes, or no links (exclude cannot be reshaped to (0, -1))
         return np.full(m, np.inf), np.full(m, -1, dtype=np.int64)
     bx = np.atleast_2d(np.asarray(boxes, dtype=float))
     if bx.size == 0:
