@@ -23,6 +23,7 @@ ENU plane is below a millimetre per metre.
 
 from __future__ import annotations
 
+import math
 from dataclasses import dataclass
 from functools import cached_property
 
@@ -75,6 +76,27 @@ def ecef_to_geodetic(ecef_m: ArrayLike) -> tuple[FloatArray, FloatArray, FloatAr
     return lat, lon, h
 
 
+def ecef_to_geodetic_point(x_m: float, y_m: float, z_m: float) -> tuple[float, float, float]:
+    """:func:`ecef_to_geodetic` of one point, in scalar ``math`` (the same Bowring iterations).
+
+    Plain Python, and written so that numba can compile it into a kernel
+    (:mod:`v2v.sensors.gnss.spp` does). Agrees with the array form to float rounding (its
+    ``arctan2``/``hypot``/``**`` may be vectorized library variants), not bit for bit.
+    """
+    lon = math.atan2(y_m, x_m)
+    p = math.hypot(x_m, y_m)
+    ep2 = WGS84_E2 / (1.0 - WGS84_E2)
+    beta = math.atan2(z_m, p * (1.0 - WGS84_F))
+    lat = math.atan2(z_m + ep2 * WGS84_B_M * math.sin(beta) ** 3, p - WGS84_E2 * WGS84_A_M * math.cos(beta) ** 3)
+    for _ in range(2):
+        beta = math.atan2((1.0 - WGS84_F) * math.sin(lat), math.cos(lat))
+        lat = math.atan2(z_m + ep2 * WGS84_B_M * math.sin(beta) ** 3, p - WGS84_E2 * WGS84_A_M * math.cos(beta) ** 3)
+    sin_lat = math.sin(lat)
+    n = WGS84_A_M / math.sqrt(1.0 - WGS84_E2 * sin_lat**2)
+    h = p * math.cos(lat) + (z_m + WGS84_E2 * n * sin_lat) * sin_lat - n
+    return lat, lon, h
+
+
 def ecef_to_enu_rotation(lat_rad: float, lon_rad: float) -> FloatArray:
     """Rotation matrix ``R`` with ``enu = R @ (ecef - ecef_ref)``."""
     sl, cl = np.sin(lat_rad), np.cos(lat_rad)
@@ -115,6 +137,13 @@ def wrap_angle(angle_rad: ArrayLike) -> FloatArray:
     w = np.mod(a + np.pi, 2.0 * np.pi) - np.pi
     # mod maps +pi to -pi; the convention here keeps +pi.
     return np.where(w == -np.pi, np.pi, w)
+
+
+def wrap_angle_scalar(angle_rad: float) -> float:
+    """:func:`wrap_angle` of one Python float (same result, bit for bit: Python's float ``%``
+    is the same fmod-based remainder as ``np.mod``), without numpy's per-call overhead."""
+    w = (angle_rad + math.pi) % (2.0 * math.pi) - math.pi
+    return math.pi if w == -math.pi else w
 
 
 def heading_unit_vectors(azimuth_rad: ArrayLike) -> tuple[FloatArray, FloatArray]:

@@ -27,6 +27,7 @@ vehicle is on the road; ``t_s = 0`` is that moment (``warmup_s`` is reported).
 
 from __future__ import annotations
 
+import bisect
 import math
 import os
 from dataclasses import dataclass, field, replace
@@ -34,9 +35,10 @@ from pathlib import Path
 from typing import TYPE_CHECKING, Any
 
 import numpy as np
+from numba import njit
 
 from v2v.errors import UserError
-from v2v.frames import GeoReference, geodetic_to_ecef, wrap_angle
+from v2v.frames import WGS84_A_M, WGS84_E2, GeoReference, wrap_angle_scalar
 from v2v.traffic.snapshot import EventKind, TrafficEvent, TrafficStep, VehicleState
 
 if TYPE_CHECKING:
@@ -113,7 +115,12 @@ class SumoSimulation:
         self._bg_next_s = math.inf
         self._pending_events: list[TrafficEvent] = []
         self._traci: Any = None
-        self._lanes: dict[str, tuple[np.ndarray, np.ndarray, float]] = {}
+        self._lanes: dict[str, tuple[list[tuple[float, float]], list[float], float]] = {}
+        self._lane_widths: dict[str, float] = {}
+        self._arms_key: tuple[str, ...] = ()
+        self._arms = np.zeros((0, 3))
+        self._pairs_key: tuple[str, ...] = ()
+        self._pairs: tuple[list[int], np.ndarray, np.ndarray] = ([], np.zeros(0, np.intp), np.zeros(0, np.intp))
 
     # ------------------------------------------------------------------ lifecycle
     def __enter__(self) -> SumoSimulation:
@@ -290,108 +297,133 @@ class SumoSimulation:
         return round(self._traci.simulation.getTime() - self._t0_sumo_s, 6)
 
     def snapshot(self) -> TrafficStep:
-        """The current truth (after the last step)."""
+        """The current truth (after the last step).
+
+        Per vehicle only the libsumo getters and the scalar rigid-body velocity run in Python;
+        the frame conversions run on all vehicles of the step at once (one projection call
+        for the antennas and their Jacobian probes, two compiled kernels).
+        """
         tc = self._traci
+        veh = tc.vehicle
         t = self.t_s
-        present = set(tc.vehicle.getIDList())
+        present = set(veh.getIDList())
         events = list(self._pending_events)
         self._pending_events.clear()
-        states: dict[str, VehicleState] = {}
         ids = [v for v in self._meta if v in present]
-        if not ids:
+        n = len(ids)
+        if not n:
             return TrafficStep(t_s=t, vehicles={}, events=tuple(events), background=self._background_boxes(present))
-        xy = np.array([tc.vehicle.getPosition(v) for v in ids])
-        z = np.array([tc.vehicle.getPosition3D(v)[2] for v in ids])
-        grid_az = np.radians([tc.vehicle.getAngle(v) for v in ids])
-        fwd = np.stack([np.sin(grid_az), np.cos(grid_az)], axis=1)
-        left = np.stack([-np.cos(grid_az), np.sin(grid_az)], axis=1)
-        arms = np.array([self._meta[v].lever_arm_m for v in ids])
-        ant_xy = xy + fwd * arms[:, :1] + left * arms[:, 1:2]
-        ant_z = z + arms[:, 2]
-        lat, lon = self.georef.xy_to_geodetic(ant_xy[:, 0], ant_xy[:, 1])
-        h = ant_z + self.scenario.network.origin_h_m
-        ecef = geodetic_to_ecef(lat, lon, h)
-        jac = self._grid_to_enu(ant_xy, h, ecef, lat, lon)  # (n, 3, 2): net-XY vector -> ENU
-        fwd_enu = np.einsum("nij,nj->ni", jac, fwd)
+        metas = [self._meta[v] for v in ids]
+        xyz_front = np.array([veh.getPosition3D(v) for v in ids])  # x, y as getPosition's
+        xy = xyz_front[:, :2]
+        grid_az_deg = np.array([veh.getAngle(v) for v in ids])
+        arms = self._lever_arms(ids)
+        fwd, ant_xy, ant_z, h, probe_x, probe_y = _antenna_kernel(xyz_front, grid_az_deg, arms,
+                                                                 self.scenario.network.origin_h_m)
+        lat3, lon3 = self.georef.xy_to_geodetic(probe_x, probe_y)  # antennas, then 1 m east / north probes
+        ecef, jac, fwd_enu = _enu_kernel(lat3, lon3, h, fwd)  # jac (n, 3, 2): net-XY vector -> ENU
+        lat, lon = lat3[:n], lon3[:n]
         # True azimuth of the body axis: the grid angle plus the projection's convergence at
         # the vehicle's own position.
         azimuths = np.arctan2(fwd_enu[:, 0], fwd_enu[:, 1]) % (2 * math.pi)
+        az_list = azimuths.tolist()
+        ant_list, xy_list = ant_xy.tolist(), xy.tolist()
+        rows = []  # per vehicle: SUMO values not yet in arrays
+        v_grid, climb = [], []
         for k, vid in enumerate(ids):
-            m = self._meta[vid]
-            az = float(azimuths[k])
+            m = metas[k]
+            az = az_list[k]
             continuing = m.prev_t_s is not None and abs(t - m.prev_t_s - self.dt_s) < 1e-6
-            yaw_rate = float(wrap_angle(az - m.prev_azimuth_rad)) / self.dt_s if continuing else 0.0
+            yaw_rate = wrap_angle_scalar(az - m.prev_azimuth_rad) / self.dt_s if continuing else 0.0
             m.prev_azimuth_rad, m.prev_t_s = az, t
-            speed = tc.vehicle.getSpeed(vid)
-            slope = math.radians(tc.vehicle.getSlope(vid))
-            lane_id = tc.vehicle.getLaneID(vid)
-            vel = self._antenna_velocity_enu(vid, lane_id, speed, slope, yaw_rate, ant_xy[k] - xy[k], jac[k])
-            lane_index = tc.vehicle.getLaneIndex(vid)
+            speed = veh.getSpeed(vid)
+            slope = math.radians(veh.getSlope(vid))
+            lane_id = veh.getLaneID(vid)
+            arm = (ant_list[k][0] - xy_list[k][0], ant_list[k][1] - xy_list[k][1])
+            v_grid.append(self._grid_velocity(vid, lane_id, speed, slope, yaw_rate, arm))
+            climb.append(speed * math.sin(slope))
+            lane_index = veh.getLaneIndex(vid)
             if m.lane_index is not None and lane_index != m.lane_index and not lane_id.startswith(":"):
                 events.append(TrafficEvent(t_s=t, kind=EventKind.LANE_CHANGE, vehicle_id=vid, detail=f"{m.lane_index}->{lane_index}"))
             if not lane_id.startswith(":"):
                 m.lane_index = lane_index
+            rows.append((az, yaw_rate, speed, lane_id, lane_index))
+        vel = np.matmul(jac, np.array(v_grid)[:, :, None])[:, :, 0]  # one (3, 2) @ (2,) per vehicle
+        vel[:, 2] += climb
+        xyz = np.empty((n, 3))
+        xyz[:, :2], xyz[:, 2] = ant_xy, ant_z
+        states: dict[str, VehicleState] = {}
+        per_vehicle = zip(ids, metas, rows, xyz, lat.tolist(), lon.tolist(), h.tolist(), ecef, vel, xy, strict=True)
+        for vid, m, (az, yaw_rate, speed, lane_id, lane_index), xyz_k, lat_k, lon_k, h_k, ecef_k, vel_k, xy_k in per_vehicle:
             states[vid] = VehicleState(
                 vehicle_id=vid,
                 cluster=m.cluster,
                 is_lead=m.is_lead,
                 t_s=t,
-                xyz_m=np.array([ant_xy[k, 0], ant_xy[k, 1], ant_z[k]]),
-                lat_rad=float(lat[k]),
-                lon_rad=float(lon[k]),
-                h_m=float(h[k]),
-                ecef_m=ecef[k],
-                vel_enu_mps=vel,
+                xyz_m=xyz_k,
+                lat_rad=lat_k,
+                lon_rad=lon_k,
+                h_m=h_k,
+                ecef_m=ecef_k,
+                vel_enu_mps=vel_k,
                 speed_mps=speed,
-                accel_mps2=tc.vehicle.getAcceleration(vid),
+                accel_mps2=veh.getAcceleration(vid),
                 azimuth_rad=az,
                 yaw_rate_rps=yaw_rate,
-                front_bumper_xy_m=xy[k].copy(),
-                edge_id=tc.vehicle.getRoadID(vid),
+                front_bumper_xy_m=xy_k,
+                edge_id=veh.getRoadID(vid),
                 lane_id=lane_id,
                 lane_index=lane_index,
-                lane_width_m=tc.lane.getWidth(lane_id) if lane_id else 3.2,
-                lateral_offset_m=tc.vehicle.getLateralLanePosition(vid),
+                lane_width_m=self._lane_width(lane_id),
+                lateral_offset_m=veh.getLateralLanePosition(vid),
                 length_m=m.length_m,
                 width_m=m.width_m,
                 height_m=m.height_m,
             )
-        # Cluster membership by separation from the lead.
-        for vid, st in states.items():
-            m = self._meta[vid]
-            lead = states.get(m.lead_id)
-            if lead is None or vid == m.lead_id:
-                continue
-            sep = float(np.linalg.norm(st.ecef_m - lead.ecef_m))
-            inside = sep <= m.max_separation_m
-            if m.in_cluster and not inside:
-                events.append(TrafficEvent(t_s=t, kind=EventKind.LEFT_CLUSTER, vehicle_id=vid, detail=f"{sep:.0f} m from {m.lead_id}"))
-            elif not m.in_cluster and inside:
-                events.append(TrafficEvent(t_s=t, kind=EventKind.REJOINED_CLUSTER, vehicle_id=vid, detail=f"{sep:.0f} m from {m.lead_id}"))
-            m.in_cluster = inside
+        self._update_membership(ids, metas, ecef, t, events)
         return TrafficStep(t_s=t, vehicles=states, events=tuple(events), background=self._background_boxes(present))
 
-    def _grid_to_enu(self, xy: np.ndarray, h: np.ndarray, ecef: np.ndarray, lat: np.ndarray, lon: np.ndarray) -> np.ndarray:
-        """Jacobian (n, 3, 2) of net XY -> local ENU at each point, by 1 m probes through the projection.
+    def _update_membership(self, ids: list[str], metas: list[_VehicleMeta], ecef: np.ndarray, t: float,
+                           events: list[TrafficEvent]) -> None:
+        """Cluster membership by the antenna separation from the lead (events on leaving / rejoining)."""
+        key = tuple(ids)
+        if self._pairs_key != key:  # rows of the non-lead vehicles whose lead is present, and of their leads
+            row = {vid: k for k, vid in enumerate(ids)}
+            ks = [k for k, (vid, m) in enumerate(zip(ids, metas, strict=True)) if vid != m.lead_id and m.lead_id in row]
+            self._pairs_key, self._pairs = key, (ks, np.array(ks, dtype=np.intp),
+                                                 np.array([row[metas[k].lead_id] for k in ks], dtype=np.intp))
+        ks, rows, lead_rows = self._pairs
+        if not ks:
+            return
+        d = ecef[rows] - ecef[lead_rows]
+        # |d| as np.linalg.norm computes it (a dot product per vehicle), for all vehicles at once
+        seps = np.sqrt(np.matmul(d[:, None, :], d[:, :, None])[:, 0, 0]).tolist()
+        for k, sep in zip(ks, seps, strict=True):
+            m = metas[k]
+            inside = sep <= m.max_separation_m
+            if m.in_cluster and not inside:
+                events.append(TrafficEvent(t_s=t, kind=EventKind.LEFT_CLUSTER, vehicle_id=ids[k], detail=f"{sep:.0f} m from {m.lead_id}"))
+            elif not m.in_cluster and inside:
+                events.append(TrafficEvent(t_s=t, kind=EventKind.REJOINED_CLUSTER, vehicle_id=ids[k], detail=f"{sep:.0f} m from {m.lead_id}"))
+            m.in_cluster = inside
 
-        Carries the grid convergence (rotation) and the projection's scale factor, so a
-        net-XY vector maps to the true ENU vector (``azimuth = atan2(E, N)``); its
-        linearization error over 1 m is ~1e-7 (Earth curvature).
-        """
-        sl, cl, so, co = np.sin(lat), np.cos(lat), np.sin(lon), np.cos(lon)
-        zero = np.zeros_like(lat)
-        rot = np.stack([
-            np.stack([-so, co, zero], axis=-1),
-            np.stack([-sl * co, -sl * so, cl], axis=-1),
-            np.stack([cl * co, cl * so, sl], axis=-1),
-        ], axis=1)  # fmt: skip
-        jac = np.empty((len(xy), 3, 2))
-        for j, (dx, dy) in enumerate(((1.0, 0.0), (0.0, 1.0))):
-            la, lo = self.georef.xy_to_geodetic(xy[:, 0] + dx, xy[:, 1] + dy)
-            jac[:, :, j] = np.einsum("nij,nj->ni", rot, geodetic_to_ecef(la, lo, h) - ecef)
-        return jac
+    def _lane_width(self, lane_id: str) -> float:
+        """``lane.getWidth`` (m), cached per lane (3.2 m when off the road)."""
+        if not lane_id:
+            return 3.2
+        w = self._lane_widths.get(lane_id)
+        if w is None:
+            w = self._lane_widths[lane_id] = self._traci.lane.getWidth(lane_id)
+        return w
 
-    def _lane_tangent(self, lane_id: str, lane_pos_m: float) -> tuple[np.ndarray, float] | None:
+    def _lever_arms(self, ids: list[str]) -> np.ndarray:
+        """Body-frame antenna lever arms (n, 3) of these vehicles (cached per vehicle set)."""
+        key = tuple(ids)
+        if self._arms_key != key:
+            self._arms_key, self._arms = key, np.array([self._meta[v].lever_arm_m for v in ids])
+        return self._arms
+
+    def _lane_tangent(self, lane_id: str, lane_pos_m: float) -> tuple[tuple[float, float], float] | None:
         """Unit tangent (net XY) of a lane's centre-line at a lane position, and the lane's
         geometry factor (shape length / SUMO lane length: SUMO moves a vehicle by
         ``speed * dt`` lane metres, i.e. ``factor * speed * dt`` along the drawn shape)."""
@@ -408,14 +440,14 @@ class SumoSimulation:
             seg, seg_len = seg[keep], seg_len[keep]
             length = float(self._traci.lane.getLength(lane_id))
             factor = float(seg_len.sum()) / length if length > 0 else 1.0
-            lane = self._lanes[lane_id] = (seg / seg_len[:, None], np.cumsum(seg_len), factor)
-        unit, cum, factor = lane
-        i = min(int(np.searchsorted(cum, lane_pos_m * factor, side="right")), len(cum) - 1)
-        return unit[i], factor
+            units = [(float(u[0]), float(u[1])) for u in seg / seg_len[:, None]]
+            lane = self._lanes[lane_id] = (units, np.cumsum(seg_len).tolist(), factor)
+        units, cum, factor = lane
+        return units[min(bisect.bisect_right(cum, lane_pos_m * factor), len(cum) - 1)], factor
 
-    def _antenna_velocity_enu(self, vid: str, lane_id: str, speed: float, slope: float, yaw_rate: float,
-                              arm_xy: np.ndarray, jac: np.ndarray) -> np.ndarray:
-        """True ENU velocity of the antenna (m/s), consistent with the antenna track.
+    def _grid_velocity(self, vid: str, lane_id: str, speed: float, slope: float, yaw_rate: float,
+                       arm_xy: tuple[float, float]) -> tuple[float, float]:
+        """Horizontal velocity of the antenna in net XY (m/s), consistent with the antenna track.
 
         Rigid body: ``v_ant = v_front + omega x r`` with ``r = antenna - front bumper``.
         The front bumper runs along its lane's centre-line (tangent at its lane position,
@@ -423,31 +455,29 @@ class SumoSimulation:
         along the lane's left normal (SUMO translates the whole vehicle sideways: its
         heading is a smoothed chord and does *not* point along that motion). ``omega`` is
         the azimuth rate (clockwise). SUMO integrates speed trapezoidally within a step, so
-        ``getSpeed`` is the speed *at* the step, not its mean.
+        ``getSpeed`` is the speed *at* the step, not its mean. The caller maps it to ENU
+        with the projection's Jacobian and adds the climb ``speed sin(slope)``.
         """
-        tc = self._traci
-        tan = self._lane_tangent(lane_id, tc.vehicle.getLanePosition(vid))
+        veh = self._traci.vehicle
+        tan = self._lane_tangent(lane_id, veh.getLanePosition(vid))
         if tan is None:
-            a = math.radians(tc.vehicle.getAngle(vid))
-            tangent, factor = np.array([math.sin(a), math.cos(a)]), 1.0
+            a = math.radians(veh.getAngle(vid))
+            (t0, t1), factor = (math.sin(a), math.cos(a)), 1.0
         else:
-            tangent, factor = tan
-        normal = np.array([-tangent[1], tangent[0]])  # left of the lane direction
-        v_grid = (
-            speed * math.cos(slope) * factor * tangent
-            + tc.vehicle.getLateralSpeed(vid) * normal
-            + yaw_rate * np.array([arm_xy[1], -arm_xy[0]])
-        )
-        vel = jac @ v_grid
-        vel[2] += speed * math.sin(slope)
-        return vel
+            (t0, t1), factor = tan
+        along = speed * math.cos(slope) * factor
+        lateral = veh.getLateralSpeed(vid)  # along the left normal (-t1, t0)
+        return (along * t0 + lateral * -t1 + yaw_rate * arm_xy[1],
+                along * t1 + lateral * t0 + yaw_rate * -arm_xy[0])
 
     def _background_boxes(self, present: set[str]) -> np.ndarray:
+        """Boxes (k, 6) of the non-cluster vehicles, sorted: centre x, y, azimuth, length, width, height."""
+        others = present.difference(self._meta)
+        if not others:
+            return np.zeros((0, 6))
         tc = self._traci
         rows = []
-        for vid in present:
-            if vid in self._meta:
-                continue
+        for vid in others:
             x, y = tc.vehicle.getPosition(vid)
             a = math.radians(tc.vehicle.getAngle(vid))
             length = tc.vehicle.getLength(vid)
@@ -492,6 +522,86 @@ class SumoSimulation:
             {lid: np.asarray(tc.lane.getShape(lid), dtype=float) for lid in ids},
             {lid: float(tc.lane.getWidth(lid)) for lid in ids},
         )
+
+
+# --------------------------------------------------------------------------- compiled frame conversions
+# The per-step conversions of all cluster vehicles: numpy on a few-element array costs ~1 us a
+# call, and the conversion took a few dozen calls a step. Each kernel does, element for
+# element, the arithmetic of the numpy formulation it replaces (same libm sin/cos, same
+# operation order, no fused multiply-add), so the truth is the same to the last bit.
+
+_JIT = {"cache": True, "nogil": True, "error_model": "numpy"}
+
+
+@njit(**_JIT)
+def _antenna_kernel(front, grid_az_deg, arms, origin_h_m):  # pragma: no cover - compiled
+    """Antenna positions from SUMO's front-bumper positions ``front`` (n, 3) and grid angles.
+
+    ``fwd = (sin a, cos a)``, ``left = (-cos a, sin a)`` (grid azimuth ``a``, clockwise from
+    +y), ``antenna = front_bumper + fwd * arm_x + left * arm_y`` (body frame: x forward, y
+    left), height ``z + arm_z`` above the net's origin, ``h = z + arm_z + origin_h`` above the
+    ellipsoid. Returns ``(fwd (n, 2), antenna_xy (n, 2), antenna_z (n,), h (n,), probe_x (3n,),
+    probe_y (3n,))``: the probes are the antennas, then 1 m east, then 1 m
+    north of them (the points :func:`_enu_kernel` needs through the projection).
+    """
+    n = front.shape[0]
+    fwd = np.empty((n, 2))
+    ant = np.empty((n, 2))
+    ant_z = np.empty(n)
+    h = np.empty(n)
+    px = np.empty(3 * n)
+    py = np.empty(3 * n)
+    for k in range(n):
+        a = grid_az_deg[k] * (np.pi / 180.0)  # np.radians
+        s, c = np.sin(a), np.cos(a)
+        fwd[k, 0], fwd[k, 1] = s, c
+        ant[k, 0] = front[k, 0] + s * arms[k, 0] + -c * arms[k, 1]
+        ant[k, 1] = front[k, 1] + c * arms[k, 0] + s * arms[k, 1]
+        ant_z[k] = front[k, 2] + arms[k, 2]
+        h[k] = ant_z[k] + origin_h_m
+        px[k], px[n + k], px[2 * n + k] = ant[k, 0], ant[k, 0] + 1.0, ant[k, 0] + 0.0
+        py[k], py[n + k], py[2 * n + k] = ant[k, 1], ant[k, 1] + 0.0, ant[k, 1] + 1.0
+    return fwd, ant, ant_z, h, px, py
+
+
+@njit(**_JIT)
+def _enu_kernel(lat3, lon3, h, fwd):  # pragma: no cover - compiled
+    """ECEF of the antennas, the net-XY -> ENU Jacobian (n, 3, 2) and the ENU forward vectors.
+
+    ``lat3``/``lon3`` (3n,): the geodetic antennas, then their 1 m east and 1 m north probes
+    (:func:`_antenna_kernel`). ECEF as :func:`v2v.frames.geodetic_to_ecef`; Jacobian column j
+    ``= R(lat, lon) (ecef(probe_j) - ecef)`` with ``R`` the ECEF -> ENU rotation
+    (:func:`v2v.frames.ecef_to_enu_rotation`): it carries the grid convergence (rotation)
+    and the projection's scale factor, so a net-XY vector maps to the true ENU vector
+    (``azimuth = atan2(E, N)``); its linearization error over 1 m is ~1e-7 (Earth
+    curvature). The 3-term rotation sums are added as numpy's ``einsum`` adds them here
+    (terms 0 and 2 first), so the results equal the array formulation bit for bit.
+    """
+    n = h.shape[0]
+    ecef3 = np.empty((3 * n, 3))
+    for k in range(3 * n):
+        hk = h[k % n]
+        sin_lat = np.sin(lat3[k])
+        nrad = WGS84_A_M / np.sqrt(1.0 - WGS84_E2 * (sin_lat * sin_lat))
+        ecef3[k, 0] = (nrad + hk) * np.cos(lat3[k]) * np.cos(lon3[k])
+        ecef3[k, 1] = (nrad + hk) * np.cos(lat3[k]) * np.sin(lon3[k])
+        ecef3[k, 2] = (nrad * (1.0 - WGS84_E2) + hk) * sin_lat
+    jac = np.empty((n, 3, 2))
+    fwd_enu = np.empty((n, 3))
+    rot = np.zeros((3, 3))
+    for k in range(n):
+        sl, cl, so, co = np.sin(lat3[k]), np.cos(lat3[k]), np.sin(lon3[k]), np.cos(lon3[k])
+        rot[0, 0], rot[0, 1] = -so, co
+        rot[1, 0], rot[1, 1], rot[1, 2] = -sl * co, -sl * so, cl
+        rot[2, 0], rot[2, 1], rot[2, 2] = cl * co, cl * so, sl
+        for j in range(2):
+            p = (j + 1) * n + k
+            d0, d1, d2 = ecef3[p, 0] - ecef3[k, 0], ecef3[p, 1] - ecef3[k, 1], ecef3[p, 2] - ecef3[k, 2]
+            for i in range(3):
+                jac[k, i, j] = (rot[i, 0] * d0 + rot[i, 2] * d2) + rot[i, 1] * d1
+        for i in range(3):
+            fwd_enu[k, i] = jac[k, i, 0] * fwd[k, 0] + jac[k, i, 1] * fwd[k, 1]
+    return ecef3[:n], jac, fwd_enu
 
 
 def _one_line(exc: BaseException) -> str:

@@ -30,18 +30,19 @@ from __future__ import annotations
 
 from dataclasses import dataclass
 from enum import StrEnum
+from functools import lru_cache
 
 import numpy as np
+from numba import njit
 from numpy.typing import ArrayLike, NDArray
 from scipy import special
 
-from v2v.frames import ecef_to_enu_rotation, ecef_to_geodetic
+from v2v.frames import ecef_to_geodetic_point
 from v2v.sensors.gnss.atmosphere import (
     KLOBUCHAR_ALPHA_2021_04_28,
     KLOBUCHAR_BETA_2021_04_28,
-    klobuchar_delay_s,
-    saastamoinen_zenith_delay_m,
-    tropo_mapping,
+    klobuchar_delay_scalar_s,
+    tropo_slant_delay_scalar_m,
 )
 from v2v.sensors.measurements import SPEED_OF_LIGHT_MPS, GnssEpoch
 
@@ -115,27 +116,271 @@ class SppResult:
     chi2_threshold: float
 
 
-def _elevation(sv: F64, x: F64) -> F64:
-    lat, lon, _ = ecef_to_geodetic(x)
-    enu = (sv - x) @ ecef_to_enu_rotation(float(lat), float(lon)).T
-    return np.arctan2(enu[:, 2], np.hypot(enu[:, 0], enu[:, 1]))
+_DEFAULT_CONFIG = SppConfig()
 
 
-def _corrections(sv: F64, x: F64, t_gps_s: float, cfg: SppConfig) -> F64:
+# --------------------------------------------------------------------------- compiled solver
+# One kernel runs the whole solution (Gauss-Newton, residual test, exclusions, DOPs) for one
+# epoch (~20 us): the numpy formulation (one array call per step: geodetic conversion,
+# weights, H'WH, its SVD condition number, LAPACK solve) cost ~0.2 ms per epoch, which the
+# lead's base position pays at every GNSS epoch. Same iteration, weighting, corrections,
+# convergence, singularity and exclusion rules as the module docstring. The numbers equal the
+# numpy formulation's to float rounding, not bit for bit (numpy's vectorized atan2/hypot and
+# LAPACK round differently in the last bit): statuses, exclusions and iteration counts agree,
+# positions within ~2e-8 m, which is the solution's own float resolution (residuals are
+# differences of ~2e7 m ranges, 4e-9 m apart, times the DOP).
+
+_JIT = {"cache": True, "nogil": True, "error_model": "numpy"}
+_geodetic = njit(**_JIT)(ecef_to_geodetic_point)
+_STATUS = (SppStatus.OK, SppStatus.OK_EXCLUDED, SppStatus.RESIDUAL_TEST_FAILED, SppStatus.TOO_FEW_SATELLITES,
+           SppStatus.SINGULAR_GEOMETRY, SppStatus.NOT_CONVERGED)  # kernel status codes 0..5
+_COND_MAX = 1e12  # (H'WH) with a larger 2-norm condition number is "singular geometry"
+
+
+@njit(**_JIT, inline="always")
+def _to_enu(dx, dy, dz, lat, lon):  # pragma: no cover - compiled
+    """An ECEF vector in ENU at (lat, lon): ``ecef_to_enu_rotation(lat, lon) @ d``."""
+    sl, cl, so, co = np.sin(lat), np.cos(lat), np.sin(lon), np.cos(lon)
+    return -so * dx + co * dy, -sl * co * dx - sl * so * dy + cl * dz, cl * co * dx + cl * so * dy + sl * dz
+
+
+@njit(**_JIT, inline="always")
+def _elevation(sv, i, x, lat, lon):  # pragma: no cover - compiled
+    """Elevation and azimuth (rad) of satellite ``i`` seen from ``x`` at geodetic (lat, lon)."""
+    e, n, u = _to_enu(sv[i, 0] - x[0], sv[i, 1] - x[1], sv[i, 2] - x[2], lat, lon)
+    return np.arctan2(u, np.hypot(e, n)), np.arctan2(e, n)
+
+
+@njit(**_JIT)
+def _weights(sv, x, sigma0_m, elevation_weighting):  # pragma: no cover - compiled
+    """``1 / sigma_i^2`` with ``sigma_i = sigma0 / clip(sin E_i, 0.05, 1)`` (0.05 caps low/negative
+    elevations at 20x sigma), or ``1 / sigma0^2`` (no weighting, or still far from the Earth)."""
+    w = np.full(sv.shape[0], 1.0 / sigma0_m**2)
+    if not elevation_weighting or np.sqrt(x[0] ** 2 + x[1] ** 2 + x[2] ** 2) < 6.0e6:
+        return w
+    lat, lon, _ = _geodetic(x[0], x[1], x[2])
+    for i in range(sv.shape[0]):
+        s = min(max(np.sin(_elevation(sv, i, x, lat, lon)[0]), 0.05), 1.0)
+        w[i] = (s / sigma0_m) ** 2
+    return w
+
+
+@njit(**_JIT)
+def _corrections(sv, x, t_gps_s, iono, tropo, klob_alpha, klob_beta):  # pragma: no cover - compiled
+    """Broadcast ionosphere (Klobuchar) plus Saastamoinen troposphere delays (m) at the estimate
+    ``x``, elevations clipped to >= 1e-3 rad; zeros far from the Earth's surface (first iterations)."""
     corr = np.zeros(sv.shape[0])
-    if not (cfg.correct_iono or cfg.correct_tropo) or np.linalg.norm(x) < 6.0e6:
-        return corr  # far from the Earth's surface (first iterations): no atmosphere yet
-    lat, lon, h = ecef_to_geodetic(x)
-    enu = (sv - x) @ ecef_to_enu_rotation(float(lat), float(lon)).T
-    el = np.arctan2(enu[:, 2], np.hypot(enu[:, 0], enu[:, 1]))
-    az = np.arctan2(enu[:, 0], enu[:, 1])
-    el_c = np.clip(el, 1e-3, None)
-    if cfg.correct_iono:
-        corr += SPEED_OF_LIGHT_MPS * klobuchar_delay_s(lat, lon, el_c, az, t_gps_s, cfg.klobuchar_alpha,
-                                                       cfg.klobuchar_beta)
-    if cfg.correct_tropo:
-        corr += tropo_mapping(el_c) * saastamoinen_zenith_delay_m(lat, h)
+    if not (iono or tropo) or np.sqrt(x[0] ** 2 + x[1] ** 2 + x[2] ** 2) < 6.0e6:
+        return corr
+    lat, lon, h = _geodetic(x[0], x[1], x[2])
+    for i in range(sv.shape[0]):
+        el, az = _elevation(sv, i, x, lat, lon)
+        el_c = max(el, 1e-3)
+        if iono:
+            corr[i] += SPEED_OF_LIGHT_MPS * klobuchar_delay_scalar_s(lat, lon, el_c, az, t_gps_s, klob_alpha, klob_beta)
+        if tropo:  # mapping x zenith delay; 15 C / 50 % are saastamoinen_zenith_delay_m's standard atmosphere
+            corr[i] += tropo_slant_delay_scalar_m(lat, lon, h, el_c, 15.0, 0.5, 0.0, 0.0, 0.0, lat, lon)
     return corr
+
+
+@njit(**_JIT)
+def _design(sv, x):  # pragma: no cover - compiled
+    """Geometric ranges ``rho_i`` and design rows ``H_i = [-(x_sv,i - x)' / rho_i, 1]`` (thesis eq. 3.3)."""
+    k = sv.shape[0]
+    rho = np.empty(k)
+    h = np.empty((k, 4))
+    for i in range(k):
+        dx, dy, dz = sv[i, 0] - x[0], sv[i, 1] - x[1], sv[i, 2] - x[2]
+        rho[i] = np.sqrt(dx * dx + dy * dy + dz * dz)
+        h[i, 0], h[i, 1], h[i, 2], h[i, 3] = -dx / rho[i], -dy / rho[i], -dz / rho[i], 1.0
+    return rho, h
+
+
+@njit(**_JIT)
+def _normal_matrix(h, w):  # pragma: no cover - compiled
+    """``H' W H`` (4, 4), W = diag(w)."""
+    n = np.zeros((4, 4))
+    for i in range(h.shape[0]):
+        for a in range(4):
+            wa = w[i] * h[i, a]
+            for b in range(4):
+                n[a, b] += wa * h[i, b]
+    return n
+
+
+@njit(**_JIT)
+def _solve(a, b):  # pragma: no cover - compiled
+    """``a^-1 b`` for a small square ``a`` and ``b`` (m, k): Gaussian elimination with partial
+    pivoting (the algorithm of LAPACK ``dgesv``, unblocked). A zero pivot gives inf/NaN."""
+    m = a.shape[0]
+    lu = a.copy()
+    x = b.copy()
+    for j in range(m):
+        p = j + np.argmax(np.abs(lu[j:, j]))
+        if p != j:
+            for c in range(m):
+                lu[j, c], lu[p, c] = lu[p, c], lu[j, c]
+            for c in range(x.shape[1]):
+                x[j, c], x[p, c] = x[p, c], x[j, c]
+        for i in range(j + 1, m):
+            f = lu[i, j] / lu[j, j]
+            for c in range(j + 1, m):
+                lu[i, c] -= f * lu[j, c]
+            for c in range(x.shape[1]):
+                x[i, c] -= f * x[j, c]
+    for j in range(m - 1, -1, -1):
+        for c in range(x.shape[1]):
+            acc = x[j, c]
+            for i in range(j + 1, m):
+                acc -= lu[j, i] * x[i, c]
+            x[j, c] = acc / lu[j, j]
+    return x
+
+
+@njit(**_JIT)
+def _cond2_symmetric(a):  # pragma: no cover - compiled
+    """2-norm condition number ``max|lambda| / min|lambda|`` of a symmetric matrix (its
+    singular values are its eigenvalues' magnitudes), by cyclic Jacobi rotations (Golub & Van
+    Loan 2013, alg. 8.5.3), which find even the small eigenvalues of a positive definite
+    matrix to high relative accuracy. ``a`` is symmetrized first (H'WH is symmetric only up
+    to rounding)."""
+    m = a.shape[0]
+    s = np.empty((m, m))
+    for p in range(m):
+        for q in range(m):
+            s[p, q] = 0.5 * (a[p, q] + a[q, p])
+    for _ in range(30):
+        off = 0.0
+        diag = 0.0
+        for p in range(m):
+            diag += s[p, p] ** 2
+            for q in range(p + 1, m):
+                off += s[p, q] ** 2
+        if not off > 1e-36 * diag:  # converged (also stops on NaN)
+            break
+        for p in range(m - 1):
+            for q in range(p + 1, m):
+                if s[p, q] == 0.0:
+                    continue
+                theta = (s[q, q] - s[p, p]) / (2.0 * s[p, q])
+                t = 1.0 / (abs(theta) + np.sqrt(theta * theta + 1.0)) if abs(theta) < 1e150 else 0.5 / abs(theta)
+                if theta < 0.0:
+                    t = -t
+                c = 1.0 / np.sqrt(t * t + 1.0)
+                sn = t * c
+                for k in range(m):  # columns p, q
+                    skp, skq = s[k, p], s[k, q]
+                    s[k, p], s[k, q] = c * skp - sn * skq, sn * skp + c * skq
+                for k in range(m):  # rows p, q
+                    spk, sqk = s[p, k], s[q, k]
+                    s[p, k], s[q, k] = c * spk - sn * sqk, sn * spk + c * sqk
+    lo, hi = np.inf, 0.0
+    for p in range(m):
+        lo, hi = min(lo, abs(s[p, p])), max(hi, abs(s[p, p]))
+    return hi / lo
+
+
+@njit(**_JIT)
+def _dops(h_ecef, x):  # pragma: no cover - compiled
+    """GDOP, PDOP, HDOP, VDOP, TDOP from ``(H'H)^-1`` with H rotated to local ENU at ``x``."""
+    lat, lon, _ = _geodetic(x[0], x[1], x[2])
+    h = h_ecef.copy()
+    for i in range(h.shape[0]):
+        h[i, 0], h[i, 1], h[i, 2] = _to_enu(h_ecef[i, 0], h_ecef[i, 1], h_ecef[i, 2], lat, lon)
+    q = _solve(_normal_matrix(h, np.ones(h.shape[0])), np.eye(4))
+    out = np.empty(5)
+    out[0] = np.sqrt(q[0, 0] + q[1, 1] + q[2, 2] + q[3, 3])
+    out[1] = np.sqrt(q[0, 0] + q[1, 1] + q[2, 2])
+    out[2] = np.sqrt(q[0, 0] + q[1, 1])
+    out[3] = np.sqrt(q[2, 2])
+    out[4] = np.sqrt(q[3, 3])
+    return out
+
+
+@njit(**_JIT)
+def _spp_kernel(sv, y_all, finite, x_prior, sigma0_m, elevation_weighting, alpha_thresholds, exclude, max_iter,
+                tol_m, t_gps_s, iono, tropo, klob_alpha, klob_beta):  # pragma: no cover - compiled
+    """The whole solution of :func:`solve_spp` (module docstring) for one epoch.
+
+    ``alpha_thresholds[dof]``: the chi-square ``1 - alpha`` quantiles (0 at dof 0). Returns
+    ``(status code (index of _STATUS), iterations, x (4,), used (n,), residuals (n,), chi2,
+    threshold, dops (5,))``; on failure x, residuals, chi2 and dops are not meaningful.
+    """
+    n = y_all.shape[0]
+    used = finite.copy()
+    excluded_any = False
+    x = np.zeros(4)
+    res = np.zeros(n)
+    while True:
+        idx = np.flatnonzero(used)
+        n_used = idx.shape[0]
+        if n_used < 4:
+            return 3, 0, x, used, res, 0.0, 0.0, np.zeros(5)
+        sv_u = sv[idx]
+        y_u = y_all[idx]
+        x[:3] = x_prior
+        x[3] = 0.0
+        converged = False
+        it = 0
+        for it in range(1, max_iter + 1):
+            rho, h = _design(sv_u, x)
+            v = y_u - _corrections(sv_u, x, t_gps_s, iono, tropo, klob_alpha, klob_beta) - (rho + x[3])
+            w = _weights(sv_u, x, sigma0_m, elevation_weighting)
+            nmat = _normal_matrix(h, w)
+            if _cond2_symmetric(nmat) > _COND_MAX:
+                return 4, it, x, used, res, 0.0, 0.0, np.zeros(5)
+            rhs = np.zeros((4, 1))  # H' W v
+            for i in range(n_used):
+                for a in range(4):
+                    rhs[a, 0] += h[i, a] * (w[i] * v[i])
+            dx = _solve(nmat, rhs)[:, 0]
+            x += dx
+            if np.sqrt(np.sum(dx * dx)) < tol_m:
+                converged = True
+                break
+        if not converged or not np.all(np.isfinite(x)):
+            return 5, it, x, used, res, 0.0, 0.0, np.zeros(5)
+
+        # Final residuals (every finite satellite) and weights at the solution.
+        fidx = np.flatnonzero(finite)
+        rho_f, _ = _design(sv[fidx], x)
+        corr_f = _corrections(sv[fidx], x, t_gps_s, iono, tropo, klob_alpha, klob_beta)
+        res[:] = 0.0
+        res[fidx] = y_all[fidx] - corr_f - (rho_f + x[3])
+        _, h = _design(sv_u, x)
+        w = _weights(sv_u, x, sigma0_m, elevation_weighting)
+        res_u = res[idx]
+        chi2 = np.sum(w * res_u**2)
+        dof = n_used - 4
+        thr = alpha_thresholds[dof]
+        if dof > 0 and chi2 > thr:
+            if exclude and n_used - 1 >= 5:
+                # w-test (Baarda): |r_i| / sqrt(sigma_i^2 - (H (H'WH)^-1 H')_ii)
+                n_inv = _solve(_normal_matrix(h, w), np.eye(4))
+                std_res = np.empty(n_used)
+                for i in range(n_used):
+                    q_v = 1.0 / w[i]
+                    for a in range(4):
+                        for b in range(4):
+                            q_v -= h[i, a] * n_inv[a, b] * h[i, b]
+                    std_res[i] = abs(res_u[i]) / np.sqrt(max(q_v, 1e-12))
+                used[idx[np.argmax(std_res)]] = False
+                excluded_any = True
+                continue
+            status = 2
+        else:
+            status = 1 if excluded_any else 0
+        return status, it, x, used, res, chi2, thr, _dops(h, x)
+
+
+@lru_cache(maxsize=64)
+def _chi2_thresholds(alpha: float, n: int) -> F64:
+    """``2 * gammaincinv(dof / 2, 1 - alpha)`` (the chi-square quantile) for dof = 0..n, 0 at dof 0."""
+    thr = np.zeros(n + 1)
+    for dof in range(1, n + 1):
+        thr[dof] = float(2.0 * special.gammaincinv(dof / 2.0, 1.0 - alpha))
+    thr.setflags(write=False)
+    return thr
 
 
 def solve_spp(
@@ -158,101 +403,41 @@ def solve_spp(
     x0_ecef_m : (3,) a priori position (default: Earth's centre, which converges for GPS).
     t_gps_s : GPS seconds (only for the Klobuchar correction).
     """
-    cfg = config or SppConfig()
-    sv = np.asarray(sv_pos_ecef_m, dtype=float).reshape(-1, 3)
+    cfg = config or _DEFAULT_CONFIG
+    sv = np.ascontiguousarray(sv_pos_ecef_m, dtype=float).reshape(-1, 3)
     y_all = np.asarray(pseudorange_m, dtype=float).reshape(-1) + np.asarray(sv_clock_m, dtype=float).reshape(-1)
     n = y_all.shape[0]
     x_prior = np.zeros(3) if x0_ecef_m is None else np.asarray(x0_ecef_m, dtype=float).reshape(3)
     finite = np.all(np.isfinite(sv), axis=1) & np.isfinite(y_all)
-    used = finite.copy()
-
-    def fail(status: SppStatus, reason: str, it: int = 0) -> SppResult:
+    code, it, x, used, res, chi2, thr, dops = _spp_kernel(
+        sv, y_all, finite, x_prior, float(cfg.sigma0_m), bool(cfg.elevation_weighting), _chi2_thresholds(cfg.alpha, n),
+        bool(cfg.exclude), int(cfg.max_iter), float(cfg.tol_m), float(t_gps_s), bool(cfg.correct_iono),
+        bool(cfg.correct_tropo), np.asarray(cfg.klobuchar_alpha, dtype=float), np.asarray(cfg.klobuchar_beta, dtype=float),
+    )
+    status = _STATUS[code]
+    n_used = int(used.sum())
+    if code >= 3:
+        reason = {
+            SppStatus.TOO_FEW_SATELLITES: f"{n_used} usable satellites, need >= 4",
+            SppStatus.SINGULAR_GEOMETRY: "satellite geometry is singular",
+            SppStatus.NOT_CONVERGED: f"no convergence in {cfg.max_iter} iterations",
+        }[status]
         return SppResult(
             valid=False, status=status, reason=reason, position_ecef_m=x_prior.copy(), clock_bias_m=0.0,
-            n_used=int(used.sum()), iterations=it, gdop=0.0, pdop=0.0, hdop=0.0, vdop=0.0, tdop=0.0,
+            n_used=n_used, iterations=int(it), gdop=0.0, pdop=0.0, hdop=0.0, vdop=0.0, tdop=0.0,
             residuals_m=np.zeros(n), used=np.zeros(n, dtype=bool), chi2=0.0, chi2_threshold=0.0,
         )
-
-    excluded_any = False
-    while True:
-        if used.sum() < 4:
-            return fail(SppStatus.TOO_FEW_SATELLITES, f"{int(used.sum())} usable satellites, need >= 4")
-        x = np.append(x_prior, 0.0)
-        converged = False
-        it = 0
-        for it in range(1, cfg.max_iter + 1):
-            d = sv[used] - x[:3]
-            rho = np.linalg.norm(d, axis=1)
-            h_mat = np.column_stack([-d / rho[:, None], np.ones(rho.size)])
-            corr = _corrections(sv[used], x[:3], t_gps_s, cfg)
-            v = y_all[used] - corr - (rho + x[3])
-            w = _weights(sv[used], x[:3], cfg)
-            nmat = h_mat.T @ (w[:, None] * h_mat)
-            if np.linalg.cond(nmat) > 1e12:
-                return fail(SppStatus.SINGULAR_GEOMETRY, "satellite geometry is singular", it)
-            dx = np.linalg.solve(nmat, h_mat.T @ (w * v))
-            x = x + dx
-            if np.linalg.norm(dx) < cfg.tol_m:
-                converged = True
-                break
-        if not converged or not np.all(np.isfinite(x)):
-            return fail(SppStatus.NOT_CONVERGED, f"no convergence in {cfg.max_iter} iterations", it)
-
-        # Final residuals and covariance at the solution.
-        d_all = sv - x[:3]
-        rho_all = np.linalg.norm(d_all, axis=1)
-        corr_all = _corrections(sv, x[:3], t_gps_s, cfg)
-        res = np.where(finite, y_all - corr_all - (rho_all + x[3]), 0.0)
-        h_mat = np.column_stack([-d_all[used] / rho_all[used, None], np.ones(int(used.sum()))])
-        w = _weights(sv[used], x[:3], cfg)
-        nmat = h_mat.T @ (w[:, None] * h_mat)
-        n_used = int(used.sum())
-        dof = n_used - 4
-        chi2 = float(np.sum(w * res[used] ** 2))
-        thr = float(2.0 * special.gammaincinv(dof / 2.0, 1.0 - cfg.alpha)) if dof > 0 else 0.0  # chi2.ppf
-        if dof > 0 and chi2 > thr:
-            if cfg.exclude and n_used - 1 >= 5:
-                q_v = 1.0 / w - np.einsum("ij,jk,ik->i", h_mat, np.linalg.inv(nmat), h_mat)
-                std_res = np.abs(res[used]) / np.sqrt(np.maximum(q_v, 1e-12))
-                worst = np.flatnonzero(used)[int(np.argmax(std_res))]
-                used[worst] = False
-                excluded_any = True
-                continue
-            status, reason = SppStatus.RESIDUAL_TEST_FAILED, f"chi2 {chi2:.1f} > {thr:.1f} ({dof} dof)"
-            valid = False
-        else:
-            status = SppStatus.OK_EXCLUDED if excluded_any else SppStatus.OK
-            reason = f"{int((~used & finite).sum())} excluded" if excluded_any else ""
-            valid = True
-        dops = _dops(h_mat, x[:3])
-        return SppResult(
-            valid=valid, status=status, reason=reason, position_ecef_m=x[:3].copy(), clock_bias_m=float(x[3]),
-            n_used=n_used, iterations=it, gdop=dops[0], pdop=dops[1], hdop=dops[2], vdop=dops[3], tdop=dops[4],
-            residuals_m=res, used=used.copy(), chi2=chi2, chi2_threshold=thr,
-        )
-
-
-def _weights(sv: F64, x: F64, cfg: SppConfig) -> F64:
-    if not cfg.elevation_weighting or np.linalg.norm(x) < 6.0e6:
-        return np.full(sv.shape[0], 1.0 / cfg.sigma0_m**2)
-    s = np.clip(np.sin(_elevation(sv, x)), 0.05, 1.0)  # 0.05 caps low/negative elevations at 20x sigma
-    return (s / cfg.sigma0_m) ** 2
-
-
-def _dops(h_ecef: F64, x: F64) -> tuple[float, float, float, float, float]:
-    """GDOP, PDOP, HDOP, VDOP, TDOP from ``(H'H)^-1`` with H rotated to local ENU."""
-    lat, lon, _ = ecef_to_geodetic(x)
-    rot = ecef_to_enu_rotation(float(lat), float(lon))
-    h = h_ecef.copy()
-    h[:, :3] = h[:, :3] @ rot.T
-    q = np.linalg.inv(h.T @ h)
-    dg = np.diag(q)
-    return (
-        float(np.sqrt(np.trace(q))),
-        float(np.sqrt(dg[:3].sum())),
-        float(np.sqrt(dg[:2].sum())),
-        float(np.sqrt(dg[2])),
-        float(np.sqrt(dg[3])),
+    if status is SppStatus.RESIDUAL_TEST_FAILED:
+        reason = f"chi2 {chi2:.1f} > {thr:.1f} ({n_used - 4} dof)"
+    elif status is SppStatus.OK_EXCLUDED:
+        reason = f"{int((~used & finite).sum())} excluded"
+    else:
+        reason = ""
+    return SppResult(
+        valid=status is not SppStatus.RESIDUAL_TEST_FAILED, status=status, reason=reason,
+        position_ecef_m=x[:3].copy(), clock_bias_m=float(x[3]), n_used=n_used, iterations=int(it),
+        gdop=float(dops[0]), pdop=float(dops[1]), hdop=float(dops[2]), vdop=float(dops[3]), tdop=float(dops[4]),
+        residuals_m=res, used=used, chi2=float(chi2), chi2_threshold=float(thr),
     )
 
 
