@@ -37,14 +37,14 @@ from v2v.world import occlusion
 
 net, n, dur, out = sys.argv[1], int(sys.argv[2]), float(sys.argv[3]), sys.argv[4]
 stats = {"receiver_epochs": 0, "sky_s": 0.0, "rays": 0, "gnss_cpu_s": 0.0, "sky_cpu_s": 0.0}
-epoch = receiver.GnssSynthesizer.epoch
+epochs = receiver.GnssSynthesizer._epochs  # every batch of epochs (feed_many, feed, epoch) goes through it
 sky_many = occlusion.OcclusionGeometry.sky_many
 
 
-def counted_epoch(self, t_s, vehicles):
-    stats["receiver_epochs"] += len(vehicles)
+def counted_epochs(self, due):
+    stats["receiver_epochs"] += sum(len(v) for _, v in due)
     c0 = time.process_time()
-    out = epoch(self, t_s, vehicles)
+    out = epochs(self, due)
     stats["gnss_cpu_s"] += time.process_time() - c0
     return out
 
@@ -68,7 +68,7 @@ getattr(receiver, "warm_up", lambda: None)()  # GNSS kernels (absent before they
 stats["gnss_warm_up_cpu_s"] = time.process_time() - c0
 
 
-receiver.GnssSynthesizer.epoch = counted_epoch
+receiver.GnssSynthesizer._epochs = counted_epochs
 occlusion.OcclusionGeometry.sky_many = timed_sky_many
 sc = load_scenario(None, [
     f'network.name="{net}"', f"clusters.0.vehicles={n}", "clusters.0.lanes=[0,1]", f"duration_s={dur}",
