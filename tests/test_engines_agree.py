@@ -89,10 +89,13 @@ def test_engines_agree_ten_vehicle_benchmark_cluster():
 def test_uwb_event_runs_agree_with_one_event_at_a_time():
     """A streamed run feeds UWB ranges as one event per time tag (TDMA: 3 Hz x all pairs)
     and the production engine processes a run of them in one kernel call
-    (ClusterEkf.update_uwb_events: predict, update, predict, ...). Checked against (a) the
-    same engine one event at a time (predict + update_uwb): the same kernels in the same
-    order, so *equal*; (b) the reference engine (plain Python + filterpy) to the 1e-9 of the
-    module docstring. With UWB bias/scale states and active bounds (constraint records)."""
+    (ClusterEkf.update_uwb_events), deferring the predictions and covariance updates
+    (kernels "deferred prediction": P_now = Phi P Phi^T + Qacc - sum q q^T). Checked against
+    (a) the same engine one event at a time (predict + update_uwb) and (b) the reference
+    engine (plain Python + filterpy), both to the 1e-9 of the module docstring (the deferred
+    form is the same algebra in another order: it agrees with (a) to ~1e-14 relative in
+    practice; (b) differs by its own Joseph-form round-off). Same records (kind, vehicles,
+    accepted) and counters. With UWB bias/scale states and active bounds (constraints)."""
     from v2v.sensors.uwb import select_ranges
 
     cfg = FilterConfig(uwb_bias_bounds_m=(-0.1, 0.1), uwb_scale_bounds=(-0.001, 0.001))
@@ -114,13 +117,56 @@ def test_uwb_event_runs_agree_with_one_event_at_a_time():
         infos_run = run.update_uwb_events(dts, events)
         infos_one = [(one.predict(dt), one.update_uwb(e))[1] for dt, e in zip(dts, events, strict=True)]
         infos_ref = ref.update_uwb_events(dts, events)  # the base class: one at a time
-        assert infos_run == infos_one
-        assert [[(i.kind, i.vehicles, i.accepted) for i in x] for x in infos_run] == \
-               [[(i.kind, i.vehicles, i.accepted) for i in x] for x in infos_ref]
+        for other in (infos_one, infos_ref):
+            assert [[(i.kind, i.vehicles, i.accepted) for i in x] for x in infos_run] == \
+                   [[(i.kind, i.vehicles, i.accepted) for i in x] for x in other]
         n_uwb += sum(i.kind == "uwb" and i.accepted for x in infos_run for i in x)
-        assert np.array_equal(run.x, one.x) and np.array_equal(run.P, one.P)
-        sd = np.sqrt(np.abs(np.diag(ref.P)))
-        np.testing.assert_array_less(np.abs(run.x - ref.x), 1e-9 * (np.abs(ref.x) + sd) + 1e-300)
-        np.testing.assert_array_less(np.abs(run.P - ref.P), 1e-9 * (np.abs(ref.P) + np.outer(sd, sd)) + 1e-300)
+        assert np.array_equal(run.P, run.P.T)  # the deferred form keeps P exactly symmetric
+        for other in (one, ref):
+            sd = np.sqrt(np.abs(np.diag(other.P)))
+            np.testing.assert_array_less(np.abs(run.x - other.x), 1e-9 * (np.abs(other.x) + sd) + 1e-300)
+            np.testing.assert_array_less(np.abs(run.P - other.P), 1e-9 * (np.abs(other.P) + np.outer(sd, sd)) + 1e-300)
     assert n_uwb > 50
+    assert run.counters == one.counters == ref.counters
+
+
+def test_long_uwb_event_run_brings_the_covariance_up_to_date_midway():
+    """One run of 150 UWB events 2 ms apart (the ranges of 15 epochs, no GNSS in between; a
+    longer gap lets P grow until the ranges are deferred as too nonlinear): more
+    updates than the deferred buffer holds (kernels.LAZY_RANK = 32), so P is brought up to
+    date mid-run with predictions pending. Same records and, to 1e-9 (module docstring),
+    the same x and P as one event at a time and as the reference engine."""
+    from v2v.estimation import kernels
+    from v2v.sensors.uwb import select_ranges
+
+    cfg = FilterConfig(uwb_bias_bounds_m=(-1.23, 1.23), uwb_scale_bounds=(-0.01, 0.01))
+    scn = SimScenario(n_vehicles=5, duration_s=3.0, turn_rate_rps=0.05, bearing_vehicles=("lead",),
+                      uwb_state_pairs=(("lead", "v1"),), uwb_bias_m=0.3, uwb_scale=0.004)
+    lay = StateLayout.build(lead="lead", vehicles=vehicle_ids(5)[1:], azimuth_vehicles=("lead",),
+                            uwb_pairs=(("lead", "v1"),), azimuth_rates=True)
+    eps = simulate(scn, cfg, np.random.default_rng(11))
+    run, one, ref = ClusterEkf(lay, cfg), ClusterEkf(lay, cfg), ReferenceClusterEkf(lay, cfg)
+    for k, ep in enumerate(eps[:15]):  # initialize with GNSS
+        for f in (run, one, ref):
+            if k > 0:
+                f.predict(scn.dt_s)
+            f.update_epoch(gnss=ep.gnss, lead_base_ecef_m=ep.lead_base_ecef_m)
+    events, dts = [], []
+    for ep in eps[15:30]:
+        for i in range(ep.uwb.n):
+            events.append(select_ranges(ep.uwb, np.array([i])))
+            dts.append(0.002)
+    infos_run = run.update_uwb_events(dts, events)
+    infos_one = [(one.predict(dt), one.update_uwb(e))[1] for dt, e in zip(dts, events, strict=True)]
+    infos_ref = ref.update_uwb_events(dts, events)
+    n_acc = sum(i.accepted for x in infos_run for i in x)
+    assert len(events) >= 100 and n_acc > kernels.LAZY_RANK
+    for other in (infos_one, infos_ref):
+        assert [[(i.kind, i.vehicles, i.accepted) for i in x] for x in infos_run] == \
+               [[(i.kind, i.vehicles, i.accepted) for i in x] for x in other]
+    assert np.array_equal(run.P, run.P.T)
+    for other in (one, ref):
+        sd = np.sqrt(np.abs(np.diag(other.P)))
+        np.testing.assert_array_less(np.abs(run.x - other.x), 1e-9 * (np.abs(other.x) + sd) + 1e-300)
+        np.testing.assert_array_less(np.abs(run.P - other.P), 1e-9 * (np.abs(other.P) + np.outer(sd, sd)) + 1e-300)
     assert run.counters == one.counters == ref.counters

@@ -260,6 +260,290 @@ def lazy_scalar_update(x, P, Q, kq, idx, val, nnz, nu, r_var, gate_k, test):
     return s, ACCEPTED, kq + 1
 
 
+# ------------------------------------------------------------------ deferred prediction (UWB event runs)
+# Between two GNSS epochs a streamed run sees one UWB event per time tag (3 Hz x every pair), each
+# preceded by a prediction. A prediction touches all of P (O(n^2)); the range update only needs
+# P h^T and a few entries. So over a run of events the predictions are deferred too: with the
+# accumulated transition Phi (the filter's F has at most two nonzeros per row: a *level* -
+# position, clock, azimuth - integrates its *rate* - velocity, drift, azimuth rate -, every other
+# state is kept; products of such F keep that form, Phi[i, i] = A[i], Phi[i, part[i]] = B[i])
+# and the accumulated noise Qacc (block-diagonal: per vehicle 8x8, per azimuth pair 2x2, the
+# random-walk diagonal),
+#     P_now = Phi P Phi^T + Qacc - sum_k q_k q_k^T,
+# where the buffered update vectors q_k are carried forward by each F (O(n) each). Entries and
+# P_now h^T then cost O(nnz n + kq n); P is brought up to date (:func:`_lz_materialize`) when
+# the buffer is full and at the end of the run: one O(n^2) pass per LAZY_RANK updates instead of
+# three (predict, symmetrize, rank-1) per event. Equal to the event-by-event arithmetic up to
+# round-off (tests/test_engines_agree.py).
+
+
+@njit(**_JIT)
+def _lz_state(n, veh0, nveh, az_ia, az_ir):
+    """Idle deferred-prediction state for a state of size ``n``: (A, B, part, order, meta,
+    Qv, Qaz, az_pair, az_slot, az_ia, az_ir, qdiag, pend); ``meta`` = (veh0, nveh, n_levels)."""
+    a = np.ones(n)
+    b = np.zeros(n)
+    part = np.full(n, -1, dtype=np.int64)
+    for k in range(nveh):
+        s0 = veh0 + 8 * k
+        for c in range(3):
+            part[s0 + c] = s0 + c + 3
+        part[s0 + 6] = s0 + 7
+    npair = az_ia.shape[0]
+    az_pair = np.full(n, -1, dtype=np.int64)
+    az_slot = np.zeros(n, dtype=np.int64)
+    for k in range(npair):
+        part[az_ia[k]] = az_ir[k]
+        az_pair[az_ia[k]] = k
+        az_pair[az_ir[k]] = k
+        az_slot[az_ir[k]] = 1
+    order = np.empty(n, dtype=np.int64)
+    nl = 0
+    for i in range(n):
+        if part[i] >= 0:
+            order[nl] = i
+            nl += 1
+    m = nl
+    for i in range(n):
+        if part[i] < 0:
+            order[m] = i
+            m += 1
+    meta = np.array([veh0, nveh, nl], dtype=np.int64)
+    return (a, b, part, order, meta, np.zeros((nveh, 8, 8)), np.zeros((npair, 2, 2)), az_pair, az_slot,
+            az_ia, az_ir, np.zeros(n), np.zeros(1, dtype=np.int64))
+
+
+@njit(**_JIT)
+def _lz_entry(P, Q, kq, lz, i, j):
+    """``P_now[i, j]`` (see above); :func:`_lazy_entry` when no prediction is pending."""
+    a, b, part, order, meta, qv, qaz, az_pair, az_slot, az_ia, az_ir, qdiag, pend = lz
+    if pend[0] == 0:
+        return _lazy_entry(P, Q, kq, i, j)
+    pi, pj = part[i], part[j]
+    v = a[i] * a[j] * P[i, j]
+    if pj >= 0:
+        v += a[i] * b[j] * P[i, pj]
+    if pi >= 0:
+        v += b[i] * a[j] * P[pi, j]
+        if pj >= 0:
+            v += b[i] * b[j] * P[pi, pj]
+    veh0, nveh = meta[0], meta[1]
+    if veh0 <= i < veh0 + 8 * nveh and veh0 <= j < veh0 + 8 * nveh:
+        bi, bj = (i - veh0) // 8, (j - veh0) // 8
+        if bi == bj:
+            v += qv[bi, i - veh0 - 8 * bi, j - veh0 - 8 * bj]
+    if az_pair[i] >= 0 and az_pair[i] == az_pair[j]:
+        v += qaz[az_pair[i], az_slot[i], az_slot[j]]
+    if i == j:
+        v += qdiag[i]
+    for k in range(kq):
+        v -= Q[k, i] * Q[k, j]
+    return v
+
+
+@njit(**_JIT)
+def _lz_rel_cov(P, Q, kq, lz, sa, sb, out):
+    """:func:`_rel_cov_lazy` on ``P_now`` (:func:`_lz_entry`)."""
+    for i in range(3):
+        for j in range(3):
+            v = 0.0
+            if sa >= 0:
+                v += _lz_entry(P, Q, kq, lz, sa + i, sa + j)
+            if sb >= 0:
+                v += _lz_entry(P, Q, kq, lz, sb + i, sb + j)
+            if sa >= 0 and sb >= 0:
+                v -= _lz_entry(P, Q, kq, lz, sa + i, sb + j) + _lz_entry(P, Q, kq, lz, sb + i, sa + j)
+            out[i, j] = v
+
+
+@njit(**_JIT)
+def _lz_update(x, P, Q, kq, lz, idx, val, nnz, nu, r_var, gate_k, test):
+    """:func:`lazy_scalar_update` on ``P_now``: ``P_now h^T = Phi (P (Phi^T h^T)) + Qacc h^T -
+    sum_k (q_k . h) q_k``; when the buffer is full, P is brought up to date first."""
+    a, b, part, order, meta, qv, qaz, az_pair, az_slot, az_ia, az_ir, qdiag, pend = lz
+    if pend[0] == 0:
+        return lazy_scalar_update(x, P, Q, kq, idx, val, nnz, nu, r_var, gate_k, test)
+    n = x.shape[0]
+    w = np.zeros(n)
+    for t in range(nnz):  # w = P Phi^T h^T
+        i = idx[t]
+        g = a[i] * val[t]
+        row = P[i]
+        for c in range(n):
+            w[c] += row[c] * g
+        if part[i] >= 0:
+            g = b[i] * val[t]
+            row = P[part[i]]
+            for c in range(n):
+                w[c] += row[c] * g
+    p = np.empty(n)
+    for c in range(n):  # p = Phi w
+        p[c] = a[c] * w[c]
+        if part[c] >= 0:
+            p[c] += b[c] * w[part[c]]
+    veh0, nveh = meta[0], meta[1]
+    for t in range(nnz):  # + Qacc h^T
+        i = idx[t]
+        v = val[t]
+        if veh0 <= i < veh0 + 8 * nveh:
+            bi = (i - veh0) // 8
+            s0 = veh0 + 8 * bi
+            for c in range(8):
+                p[s0 + c] += qv[bi, c, i - s0] * v
+        if az_pair[i] >= 0:
+            k = az_pair[i]
+            p[az_ia[k]] += qaz[k, 0, az_slot[i]] * v
+            p[az_ir[k]] += qaz[k, 1, az_slot[i]] * v
+        p[i] += qdiag[i] * v
+    for k in range(kq):
+        qk = Q[k]
+        c = 0.0
+        for t in range(nnz):
+            c += val[t] * qk[idx[t]]
+        if c != 0.0:
+            for i in range(n):
+                p[i] -= c * qk[i]
+    s = 0.0
+    for t in range(nnz):
+        s += val[t] * p[idx[t]]
+    s += r_var
+    if not (math.isfinite(nu) and math.isfinite(s) and s > 0.0):
+        return s, NONFINITE, kq
+    for i in range(n):
+        if not math.isfinite(p[i]):
+            return s, REJECTED, kq
+    if test and abs(nu) > gate_k * math.sqrt(s):
+        return s, REJECTED, kq
+    g = nu / s
+    for i in range(n):
+        x[i] += p[i] * g
+    if kq == Q.shape[0]:
+        kq = _lz_materialize(P, Q, kq, lz)
+    c = math.sqrt(1.0 / s)
+    qk = Q[kq]
+    for i in range(n):
+        qk[i] = p[i] * c
+    return s, ACCEPTED, kq + 1
+
+
+@njit(**_JIT)
+def _two_term_apply(v, a_lvl, b_lvl, a_rate, s0, lvl, rate):
+    """``v[lvl] = a_lvl v[lvl] + b_lvl v[rate]``, then ``v[rate] *= a_rate`` (one level/rate pair)."""
+    v[s0 + lvl] = a_lvl * v[s0 + lvl] + b_lvl * v[s0 + rate]
+    v[s0 + rate] = a_rate * v[s0 + rate]
+
+
+@njit(**_JIT)
+def _sym_block_update(qm, f, qd, m):
+    """``qm <- f qm f^T + qd`` for an m x m block, upper triangle computed and mirrored (exactly symmetric)."""
+    t = np.empty((m, m))
+    for i in range(m):
+        for j in range(m):
+            acc = 0.0
+            for k in range(m):
+                acc += f[i, k] * qm[k, j]
+            t[i, j] = acc
+    for i in range(m):
+        for j in range(i, m):
+            acc = 0.0
+            for k in range(m):
+                acc += t[i, k] * f[j, k]
+            acc += qd[i, j]
+            qm[i, j] = acc
+            qm[j, i] = acc
+
+
+@njit(**_JIT)
+def _lz_predict(x, Q, kq, lz, dt, vpar, rw_diag, rw_psd, apar, fb, qb, fa, qa):
+    """Defer one prediction over ``dt``: x <- F x (the arithmetic of :func:`predict_all`), the
+    buffered q_k <- F q_k, Phi <- F Phi, Qacc <- F Qacc F^T + Q."""
+    a, b, part, order, meta, qv, qaz, az_pair, az_slot, az_ia, az_ir, qdiag, pend = lz
+    veh0, nveh = meta[0], meta[1]
+    if nveh:
+        vehicle_fq(vpar, dt, fb, qb)
+        for k in range(nveh):
+            s0 = veh0 + 8 * k
+            for c in range(3):
+                x[s0 + c] = x[s0 + c] + fb[c, c + 3] * x[s0 + 3 + c]  # as _predict_gm_vehicle_blocks
+                x[s0 + 3 + c] = fb[c + 3, c + 3] * x[s0 + 3 + c]
+                for r in range(kq):
+                    _two_term_apply(Q[r], 1.0, fb[c, c + 3], fb[c + 3, c + 3], s0, c, c + 3)
+                b[s0 + c] = b[s0 + c] + fb[c, c + 3] * a[s0 + 3 + c]
+                a[s0 + 3 + c] = fb[c + 3, c + 3] * a[s0 + 3 + c]
+            x[s0 + 6] = x[s0 + 6] + fb[6, 7] * x[s0 + 7]
+            x[s0 + 7] = fb[7, 7] * x[s0 + 7]
+            for r in range(kq):
+                _two_term_apply(Q[r], 1.0, fb[6, 7], fb[7, 7], s0, 6, 7)
+            b[s0 + 6] = b[s0 + 6] + fb[6, 7] * a[s0 + 7]
+            a[s0 + 7] = fb[7, 7] * a[s0 + 7]
+            _sym_block_update(qv[k], fb, qb, 8)
+    for k in range(rw_diag.shape[0]):
+        qdiag[rw_diag[k]] += rw_psd[k] * dt
+    if az_ia.shape[0]:
+        gm_block_into(apar[0], apar[1], dt, apar[2], fa, qa, 0, 1)
+        for k in range(az_ia.shape[0]):
+            i, j = az_ia[k], az_ir[k]
+            xa, xr = x[i], x[j]
+            x[i] = fa[0, 0] * xa + fa[0, 1] * xr  # as predict_pairs
+            x[j] = fa[1, 0] * xa + fa[1, 1] * xr
+            for r in range(kq):
+                qa_, qr_ = Q[r, i], Q[r, j]
+                Q[r, i] = fa[0, 0] * qa_ + fa[0, 1] * qr_
+                Q[r, j] = fa[1, 1] * qr_
+            b[i] = fa[0, 0] * b[i] + fa[0, 1] * a[j]
+            a[i] = fa[0, 0] * a[i]
+            a[j] = fa[1, 1] * a[j]
+            _sym_block_update(qaz[k], fa, qa, 2)
+    pend[0] = 1
+
+
+@njit(**_JIT)
+def _lz_materialize(P, Q, kq, lz):
+    """P <- P_now (Phi P Phi^T in one in-place pass, + Qacc, - the buffered q_k q_k^T); the
+    state back to idle. Returns 0 (the new buffer length)."""
+    a, b, part, order, meta, qv, qaz, az_pair, az_slot, az_ia, az_ir, qdiag, pend = lz
+    if pend[0]:
+        n = P.shape[0]
+        # Phi P Phi^T, upper triangle in ``order`` (levels first) and mirrored: every entry read
+        # is still the old one ((level, level) entries read (level, rate) and (rate, rate) ones,
+        # processed later; (level, rate) entries read (rate, rate) ones; those read themselves)
+        for ii in range(n):
+            i = order[ii]
+            ai, bi, pi = a[i], b[i], part[i]
+            for jj in range(ii, n):
+                j = order[jj]
+                pj = part[j]
+                v = ai * a[j] * P[i, j]
+                if pj >= 0:
+                    v += ai * b[j] * P[i, pj]
+                if pi >= 0:
+                    v += bi * a[j] * P[pi, j]
+                    if pj >= 0:
+                        v += bi * b[j] * P[pi, pj]
+                P[i, j] = v
+                P[j, i] = v
+        veh0, nveh = meta[0], meta[1]
+        for k in range(nveh):
+            s0 = veh0 + 8 * k
+            for i in range(8):
+                for j in range(8):
+                    P[s0 + i, s0 + j] += qv[k, i, j]
+        for k in range(az_ia.shape[0]):
+            ij = (az_ia[k], az_ir[k])
+            for i in range(2):
+                for j in range(2):
+                    P[ij[i], ij[j]] += qaz[k, i, j]
+        for i in range(n):
+            P[i, i] += qdiag[i]
+        a[:] = 1.0
+        b[:] = 0.0
+        qv[:] = 0.0
+        qaz[:] = 0.0
+        qdiag[:] = 0.0
+        pend[0] = 0
+    return lazy_flush(P, Q, kq)
+
+
 @njit(**_JIT)
 def uwb_batch(x, P, sa, sb, ib, isc, z, r_var, gate_k, nl_frac,
               bias_on, bias_lo, bias_hi, scale_on, scale_lo, scale_hi):
@@ -279,8 +563,10 @@ def uwb_batch(x, P, sa, sb, ib, isc, z, r_var, gate_k, nl_frac,
     m = z.shape[0]
     recs = _uwb_records(m)
     Q = np.empty((LAZY_RANK, x.shape[0]))  # deferred rank-1 terms (see lazy_scalar_update)
-    n_rec = _uwb_ranges(x, P, Q, 0, m, sa, sb, ib, isc, z, r_var, gate_k, nl_frac,
-                        bias_on, bias_lo, bias_hi, scale_on, scale_lo, scale_hi, recs, 0)
+    lz = _lz_state(x.shape[0], 0, 0, np.zeros(0, dtype=np.int64), np.zeros(0, dtype=np.int64))
+    n_rec, kq = _uwb_ranges(x, P, Q, 0, lz, 0, m, sa, sb, ib, isc, z, r_var, gate_k, nl_frac,
+                            bias_on, bias_lo, bias_hi, scale_on, scale_lo, scale_hi, recs, 0)
+    lazy_flush(P, Q, kq)
     return n_rec, recs[0], recs[1], recs[2], recs[3], recs[4]
 
 
@@ -294,22 +580,23 @@ def _uwb_records(m):
 
 
 @njit(**_JIT)
-def _uwb_ranges(x, P, Q, k0, k1, sa, sb, ib, isc, z, r_var, gate_k, nl_frac,
+def _uwb_ranges(x, P, Q, kq, lz, k0, k1, sa, sb, ib, isc, z, r_var, gate_k, nl_frac,
                 bias_on, bias_lo, bias_hi, scale_on, scale_lo, scale_hi, recs, n_rec):
-    """The ranges ``k0 <= k < k1`` of :func:`uwb_batch` (lazy covariance buffer ``Q``,
-    flushed on return); records appended to ``recs`` from ``n_rec``; returns the new count."""
+    """The ranges ``k0 <= k < k1`` of :func:`uwb_batch` on the lazily updated covariance
+    (buffer ``Q[:kq]``, and the pending prediction ``lz`` of :func:`uwb_event_run`: see
+    :func:`_lz_entry`); records appended to ``recs`` from ``n_rec``. Returns
+    ``(n_rec, kq)``: the caller applies the buffer (:func:`_lz_materialize`)."""
     rec_kind, rec_meas, rec_nu, rec_s, rec_status = recs
     d = np.empty(3)
     hess = np.empty((3, 3))
     pd = np.empty((3, 3))
     idx = np.empty(8, dtype=np.int64)
     val = np.empty(8)
-    kq = 0
     for k in range(k0, k1):
         lim = r_var * nl_frac[k]
         _delta(x, sa[k], sb[k], d)
         range_hessian(d, hess)
-        _rel_cov_lazy(P, Q, kq, sa[k], sb[k], pd)
+        _lz_rel_cov(P, Q, kq, lz, sa[k], sb[k], pd)
         h2_mean, h2_var = _second_order(hess, pd)
         if not h2_var <= lim:
             rec_kind[n_rec] = REC_UWB
@@ -340,7 +627,7 @@ def _uwb_ranges(x, P, Q, k0, k1, sa, sb, ib, isc, z, r_var, gate_k, nl_frac,
             val[nnz + 1] = rho
             nnz += 2
         nu = z[k] - h
-        s, st, kq = lazy_scalar_update(x, P, Q, kq, idx, val, nnz, nu, r_var + h2_var, gate_k, True)
+        s, st, kq = _lz_update(x, P, Q, kq, lz, idx, val, nnz, nu, r_var + h2_var, gate_k, True)
         rec_kind[n_rec] = REC_UWB
         rec_meas[n_rec] = k
         rec_nu[n_rec] = nu
@@ -361,7 +648,7 @@ def _uwb_ranges(x, P, Q, k0, k1, sa, sb, ib, isc, z, r_var, gate_k, nl_frac,
                         continue
                     i, lo, hi = isc[k], scale_lo, scale_hi
                 xi = x[i]
-                pii = _lazy_entry(P, Q, kq, i, i)
+                pii = _lz_entry(P, Q, kq, lz, i, i)
                 if xi > hi:
                     zc, rc = lo, pii * (hi - lo) / (xi - hi)
                 elif xi < lo:
@@ -371,7 +658,7 @@ def _uwb_ranges(x, P, Q, k0, k1, sa, sb, ib, isc, z, r_var, gate_k, nl_frac,
                 idx[0] = i
                 val[0] = 1.0
                 nuc = zc - xi
-                sc, stc, kq = lazy_scalar_update(x, P, Q, kq, idx, val, 1, nuc, rc, gate_k, False)
+                sc, stc, kq = _lz_update(x, P, Q, kq, lz, idx, val, 1, nuc, rc, gate_k, False)
                 rec_kind[n_rec] = REC_CONSTRAINT
                 rec_meas[n_rec] = k
                 rec_nu[n_rec] = nuc
@@ -382,8 +669,7 @@ def _uwb_ranges(x, P, Q, k0, k1, sa, sb, ib, isc, z, r_var, gate_k, nl_frac,
                     changed = True
             if not changed:
                 break
-    lazy_flush(P, Q, kq)
-    return n_rec
+    return n_rec, kq
 
 
 @njit(**_JIT)
@@ -821,10 +1107,11 @@ def predict_all(x, P, dt, veh0, nveh, vpar, rw_diag, rw_psd, az_ia, az_ir, apar,
 def uwb_event_run(x, P, dts, starts, sa, sb, ib, isc, z, r_var, gate_k, nl_frac,
                   bias_on, bias_lo, bias_hi, scale_on, scale_lo, scale_hi,
                   veh0, nveh, vpar, rw_diag, rw_psd, az_ia, az_ir, apar):
-    """A run of UWB events (one time tag each): for event ``e``, :func:`predict_all` over
-    ``dts[e]`` (skipped when 0), then its ranges ``starts[e] <= k < starts[e + 1]`` as one
-    :func:`uwb_batch` (covariance flushed at the end of each event): the same arithmetic as
-    the filter's ``predict`` + ``update_uwb`` per event, without the per-event Python.
+    """A run of UWB events (one time tag each): for event ``e``, the prediction over
+    ``dts[e]`` (:func:`predict_all`'s model; skipped when 0), then its ranges
+    ``starts[e] <= k < starts[e + 1]`` as in :func:`uwb_batch`: the filter's ``predict`` +
+    ``update_uwb`` per event, without the per-event Python, and with the predictions and
+    covariance updates deferred (see "deferred prediction" above; P is complete on return).
     Returns :func:`uwb_batch`'s records (``rec_meas`` indexes the concatenated ranges)."""
     m = z.shape[0]
     recs = _uwb_records(m)
@@ -833,13 +1120,16 @@ def uwb_event_run(x, P, dts, starts, sa, sb, ib, isc, z, r_var, gate_k, nl_frac,
     qb = np.empty((8, 8))
     fa = np.empty((2, 2))
     qa = np.empty((2, 2))
+    lz = _lz_state(x.shape[0], veh0, nveh, az_ia, az_ir)
     n_rec = 0
+    kq = 0
     for e in range(dts.shape[0]):
         if dts[e] > 0.0:
-            predict_all(x, P, dts[e], veh0, nveh, vpar, rw_diag, rw_psd, az_ia, az_ir, apar, fb, qb, fa, qa)
+            _lz_predict(x, Q, kq, lz, dts[e], vpar, rw_diag, rw_psd, apar, fb, qb, fa, qa)
         if starts[e + 1] > starts[e]:
-            n_rec = _uwb_ranges(x, P, Q, starts[e], starts[e + 1], sa, sb, ib, isc, z, r_var, gate_k, nl_frac,
-                                bias_on, bias_lo, bias_hi, scale_on, scale_lo, scale_hi, recs, n_rec)
+            n_rec, kq = _uwb_ranges(x, P, Q, kq, lz, starts[e], starts[e + 1], sa, sb, ib, isc, z, r_var, gate_k,
+                                    nl_frac, bias_on, bias_lo, bias_hi, scale_on, scale_lo, scale_hi, recs, n_rec)
+    _lz_materialize(P, Q, kq, lz)
     return n_rec, recs[0], recs[1], recs[2], recs[3], recs[4]
 
 
