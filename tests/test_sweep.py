@@ -328,3 +328,18 @@ def test_dask_cli_scheduler_and_worker(tiny_study, local_sweep, tmp_path):
             if p is not None:
                 p.terminate()
                 p.wait(timeout=30)
+
+
+def test_second_sweep_on_a_busy_folder_stops_with_one_line(tiny_study, tmp_path, capsys):
+    """While one sweep writes to a folder (its lock held; here by this process), a second one
+    on that folder must stop before touching it (it would remove the first one's staging
+    folders and run the same runs twice): exit 2, one line naming --out, nothing written."""
+    from v2v.sweep import _FolderLock
+
+    out = tmp_path / "busy"
+    out.mkdir()
+    with _FolderLock(out):
+        assert _cli(["sweep", str(tiny_study), "--out", str(out), "--quiet"]) == 2
+    err = capsys.readouterr().err.strip().splitlines()
+    assert len(err) == 1 and "--out" in err[0] and "another sweep" in err[0] and f"pid {__import__('os').getpid()}" in err[0]
+    assert sorted(p.name for p in out.iterdir()) == [".sweep.lock"]

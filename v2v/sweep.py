@@ -417,6 +417,43 @@ def _write_sweep_json(out: Path, study: Study) -> None:
     })
 
 
+class _FolderLock:
+    """An exclusive lock on a sweep's output folder (``.sweep.lock``, ``fcntl.flock``) held
+    while a study runs: a second ``v2v sweep`` on the same folder (e.g. started while the
+    first is still finishing after Ctrl-C) would clear the first one's staging folders and
+    race it for the same runs. The operating system releases it when the process ends."""
+
+    def __init__(self, out: Path) -> None:
+        self.path = out / ".sweep.lock"
+        self._f: Any = None
+
+    def __enter__(self) -> _FolderLock:
+        try:
+            import fcntl
+        except ImportError:  # not POSIX: no lock
+            return self
+        self._f = open(self.path, "a+")  # noqa: SIM115 - held until __exit__
+        try:
+            fcntl.flock(self._f, fcntl.LOCK_EX | fcntl.LOCK_NB)
+        except OSError:
+            self._f.seek(0)
+            owner = self._f.read().strip() or "another process"
+            self._f.close()
+            self._f = None
+            raise UserError(f"another sweep is writing to {self.path.parent} ({owner})", field="--out",
+                            fix="wait for it to finish (or stop it), or give another --out") from None
+        self._f.seek(0)
+        self._f.truncate()
+        self._f.write(f"pid {os.getpid()}\n")
+        self._f.flush()
+        return self
+
+    def __exit__(self, *exc: object) -> None:
+        if self._f is not None:
+            self._f.close()  # releases the lock
+            self._f = None
+
+
 def _remove_staging(runs_dir: Path) -> None:
     """Remove the hidden staging folders (``.<run_id>.*.partial``) of runs that never completed."""
     for d in runs_dir.glob(".*.partial"):
@@ -483,10 +520,10 @@ def run_study(
     quiet: bool = True,
     flush_every_s: float = 1.0,
 ) -> SweepResult:
-    """Run every not-yet-complete run of a study; write ``runs.parquet``. Returns counts and the table."""
-    from dask.distributed import as_completed
-    from tqdm import tqdm
+    """Run every not-yet-complete run of a study; write ``runs.parquet``. Returns counts and the table.
 
+    The output folder is locked while the study runs (:class:`_FolderLock`): a second sweep
+    on the same folder stops with a one-line error instead of racing the first."""
     if not isinstance(study, Study):
         study = load_study(study)
     if workers is not None and workers < 1:
@@ -497,6 +534,15 @@ def run_study(
     wall0 = time.perf_counter()
     out = Path(out_dir).resolve()
     runs_dir = out / "runs"
+    if scheduler and _scan(study, runs_dir)[1]:
+        _check_scheduler_reachable(scheduler)  # before anything is written
+    out.mkdir(parents=True, exist_ok=True)
+    with _FolderLock(out):
+        return _run_study_locked(study, out, scheduler, workers, host, quiet, flush_every_s, wall0)
+
+
+def _scan(study: Study, runs_dir: Path) -> tuple[dict[str, dict[str, Any]], list[RunSpec]]:
+    """(rows of the runs already complete in ``runs_dir``, the specs still to run)."""
     rows: dict[str, dict[str, Any]] = {}
     pending: list[RunSpec] = []
     for spec in study.runs:
@@ -505,13 +551,22 @@ def run_study(
             pending.append(spec)
         else:
             rows[spec.run_id] = _row(spec, "ok", "", float(summary.get("wall_s", math.nan)), flatten_summary(summary))
+    return rows, pending
+
+
+def _run_study_locked(study: Study, out: Path, scheduler: str | None, workers: int | None, host: str, quiet: bool,
+                      flush_every_s: float, wall0: float) -> SweepResult:
+    """:func:`run_study` while holding the output folder's lock."""
+    from dask.distributed import as_completed
+    from tqdm import tqdm
+
+    runs_dir = out / "runs"
+    rows, pending = _scan(study, runs_dir)
     skipped = len(rows)
     failed = 0
     if not quiet:
         print(f"sweep: {len(study.runs)} runs ({skipped} already complete, {len(pending)} to run) -> {out}",
               file=sys.stderr, flush=True)
-    if scheduler and pending:
-        _check_scheduler_reachable(scheduler)  # before anything is written
     runs_dir.mkdir(parents=True, exist_ok=True)
     _remove_staging(runs_dir)  # left by a run killed mid-write
     _write_sweep_json(out, study)
