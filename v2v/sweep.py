@@ -607,6 +607,10 @@ def _run_study_locked(study: Study, out: Path, scheduler: str | None, workers: i
             if cluster is not None:
                 cluster.close()
                 _remove_staging(runs_dir)  # its workers are gone: nothing is being written any more
+                # runs that completed while the cluster shut down (after Ctrl-C) are complete too
+                for run_id, row in _scan(study, runs_dir)[0].items():
+                    rows.setdefault(run_id, row)
+                _write_runs(out, study, rows)
     df = _write_runs(out, study, rows)
     wall = time.perf_counter() - wall0
     return SweepResult(out_dir=out, total=len(study.runs), executed=len(pending), skipped=skipped, failed=failed,
