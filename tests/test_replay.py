@@ -25,7 +25,7 @@ from scipy.stats import chi2  # noqa: E402
 from v2v.frames import GeoReference  # noqa: E402
 from v2v.traffic.snapshot import TrafficStep, VehicleState  # noqa: E402
 from v2v.viz import blueprint as bp  # noqa: E402
-from v2v.viz.logger import NullLogger  # noqa: E402
+from v2v.viz.logger import NullLogger, ReplayLogger  # noqa: E402
 from v2v.viz.rerun_logger import (  # noqa: E402
     RerunReplayLogger,
     RerunReplayParams,
@@ -405,3 +405,190 @@ def test_temp_file_is_hidden_until_close(tmp_path):
     lg.close()
     lg.close()  # idempotent
     assert path.exists() and os.listdir(tmp_path) == ["replay.rrd"]
+
+
+# ------------------------------------------------------------------ batched logging
+
+
+class _Recorder(ReplayLogger):
+    """Records the per-step calls the default ``*_many`` methods make."""
+
+    def __init__(self):
+        self.calls = []
+
+    def log_world(self, lanes, lane_widths, buildings, foliage, geo):
+        pass
+
+    def log_truth(self, t_s, step):
+        self.calls.append(("truth", t_s, step))
+
+    def log_estimates(self, t_s, solution, vehicle_ids, est_xy_m, cov_en_m2):
+        pass
+
+    def log_links(self, t_s, kind, a_xyz_m, b_xyz_m, status):
+        self.calls.append(("links", t_s, kind, np.asarray(a_xyz_m).tolist(), np.asarray(b_xyz_m).tolist(), list(status)))
+
+    def log_satellites(self, t_s, vehicle_id, prn, az_rad, el_rad, los):
+        self.calls.append(("sky", t_s, vehicle_id, np.asarray(prn).tolist(), np.asarray(az_rad).tolist(),
+                           np.asarray(el_rad).tolist(), np.asarray(los).tolist()))
+
+    def log_errors(self, *args):
+        pass
+
+    def close(self):
+        pass
+
+
+def _steps(n: int = 12) -> list[TrafficStep]:
+    """Steps of 3 vehicles; one step without cluster vehicles, 'veh_2' missing at step 3,
+    a background box at every other step."""
+    steps = []
+    for k in range(n):
+        t = k * DT_S
+        vs = {} if k == 5 else {
+            vid: _state(vid, t, (50.0 - 30.0 * i + t, 0.5 * i), math.pi / 2 + 0.1 * i, lead=i == 0)
+            for i, vid in enumerate(VEHICLES) if not (k == 3 and vid == "veh_2")
+        }
+        bg = np.array([[5.0 + t, 3.0, 1.0, 4.0, 1.8, 1.5]]) if k % 2 else np.zeros((0, 6))
+        steps.append(TrafficStep(t_s=t, vehicles=vs, background=bg))
+    return steps
+
+
+def _sky_rows(steps):
+    """(t, vehicle, prn, az, el, los) at the even steps, two vehicles, 2-3 satellites."""
+    rows = []
+    for k, st in enumerate(steps[::2]):
+        for v, m in (("veh.1", 3), ("lead", 2)):
+            rows.append((st.t_s, v, np.arange(1, m + 1) + k, np.linspace(0.1, 3.0, m) + k,
+                         np.linspace(0.2, 1.2, m), np.arange(m) % 2 == 0))
+    return rows
+
+
+def _link_rows(steps):
+    """(t, a (m, 3), b (m, 3), status) for every step but 4 (no link there)."""
+    rows = []
+    for k, st in enumerate(steps):
+        m = 0 if k == 4 else 1 + k % 3
+        a = np.arange(3 * m, dtype=float).reshape(m, 3) + k
+        rows.append((st.t_s, a, a + 1.0, [LINK_STATUSES_CYCLE[(k + i) % 3] for i in range(m)]))
+    return [r for r in rows if len(r[1])]
+
+
+LINK_STATUSES_CYCLE = ("los", "nlos", "rejected")
+
+
+def _write(path, steps, batched: bool) -> dict[str, list]:
+    # per step: every call sent at once (flush_rows=1), each ellipse computed on its own
+    params = RerunReplayParams(recording_id="batch", flush_rows=8192 if batched else 1)
+    links, sky = _link_rows(steps), _sky_rows(steps)
+    with RerunReplayLogger(path, params=params) as lg:
+        lg.log_world({"e_0": np.array([[-100.0, 0.0], [100.0, 0.0]])}, {"e_0": 3.2}, [], [], GEO)
+        if batched:
+            lg.log_truth_many(steps)
+            lg.log_links_many([r[0] for r in links], "uwb", [len(r[1]) for r in links],
+                              np.concatenate([r[1] for r in links]), np.concatenate([r[2] for r in links]),
+                              [s for r in links for s in r[3]])
+            lg.log_satellites_many([r[0] for r in sky], [r[1] for r in sky], [len(r[2]) for r in sky],
+                                   *(np.concatenate([r[i] for r in sky]) for i in range(2, 6)))
+        else:
+            for st in steps:
+                lg.log_truth(st.t_s, st)
+            for t, a, b, status in links:
+                lg.log_links(t, "uwb", a, b, status)
+            for t, v, prn, az, el, los in sky:
+                lg.log_satellites(t, v, prn, az, el, los)
+        cov = np.array([[[0.04, 0.01], [0.01, 0.09]], [[np.nan, 0.0], [0.0, 1.0]], [[0.25, -0.02], [-0.02, 0.01]]])
+        for k, st in enumerate(steps):
+            n_est = k % 4  # 0 to 3 estimates; the second has no finite covariance (no ellipse)
+            xy = [[10.0 + k + i, -1.0 * i] for i in range(n_est)]
+            lg.log_estimates(st.t_s, SOLUTIONS[k % 2], [f"v{i}" for i in range(n_est)], xy, cov[:n_est])
+            for v in range(2):
+                lg.log_errors(st.t_s, SOLUTIONS[1], VEHICLES[1 + v], *_error_row(k, 1, v))
+    return _read(path)
+
+
+def _rows_by_entity(chunks):
+    """entity -> component -> [(time, value)] in time order (static rows: time None)."""
+    out = {}
+    for path, cs in chunks.items():
+        comps = defaultdict(list)
+        for c in cs:
+            rb = c.to_record_batch()
+            t = rb.column(bp.TIMELINE).cast("int64").to_pylist() if bp.TIMELINE in rb.schema.names else [None] * rb.num_rows
+            for name in rb.schema.names:
+                if name != bp.TIMELINE and ":" in name:
+                    comps[name] += [(ti, v) for ti, v in zip(t, rb.column(name).to_pylist(), strict=True) if v is not None]
+        out[path] = {k: sorted(v, key=lambda tv: -1 if tv[0] is None else tv[0]) for k, v in comps.items()}
+    return out
+
+
+def test_batched_calls_store_the_same_rows_as_per_step_calls(tmp_path):
+    """log_truth_many / log_links_many / log_satellites_many and the deferred ellipses give
+    the same entities, components, time stamps and values (exactly) as one call per step
+    sent at once: empty steps, steps without links, estimates without a finite covariance."""
+    steps = _steps()
+    per_step = _rows_by_entity(_write(tmp_path / "a.rrd", steps, batched=False))
+    batched = _rows_by_entity(_write(tmp_path / "b.rrd", steps, batched=True))
+    assert set(per_step) == set(batched)
+    paths = (bp.TRUTH, bp.BACKGROUND, bp.links_path("uwb"), bp.sky_path("lead"), bp.ellipses_path("gps"))
+    assert {"/" + p.lstrip("/") for p in paths} <= set(batched)
+    for path in per_step:
+        assert per_step[path] == batched[path], path
+    chunks = _read(tmp_path / "b.rrd")
+    _, half = _column(chunks["/" + bp.TRUTH], "Boxes3D:half_sizes")
+    assert len(half) == len(steps) and half[5] == []  # the empty step is a row without boxes
+    _, strips = _column(chunks[bp.ellipses_path("gps+uwb")], "LineStrips3D:strips")
+    assert [len(s) for s in strips] == [1, 2] * 3  # steps 1, 3, 5, ...: 1 and 3 estimates, one NaN
+
+
+def test_default_batch_methods_make_the_per_step_calls():
+    """The base-class ``*_many`` make one per-step call per row, in order, with its slice."""
+    steps = _steps(4)
+    lg = _Recorder()
+    lg.log_truth_many(steps)
+    lg.log_links_many([0.1, 0.2], "bearing", [2, 1], np.arange(9.0).reshape(3, 3), np.ones((3, 3)), ["los", "nlos", "rejected"])
+    lg.log_satellites_many([0.0, 0.0], ["a", "b"], [1, 2], [3, 4, 5], [0.1, 0.2, 0.3], [0.5, 0.6, 0.7], [True, False, True])
+    assert [c[:2] for c in lg.calls[:4]] == [("truth", st.t_s) for st in steps]
+    assert lg.calls[4:] == [
+        ("links", 0.1, "bearing", [[0.0, 1.0, 2.0], [3.0, 4.0, 5.0]], [[1.0] * 3] * 2, ["los", "nlos"]),
+        ("links", 0.2, "bearing", [[6.0, 7.0, 8.0]], [[1.0] * 3], ["rejected"]),
+        ("sky", 0.0, "a", [3], [0.1], [0.5], [True]),
+        ("sky", 0.0, "b", [4, 5], [0.2, 0.3], [0.6, 0.7], [False, True]),
+    ]
+
+
+def test_truth_and_links_windows_match_a_per_step_scan():
+    """v2v.run._log_truth_and_links (vectorized over a chunk) logs at each step the links
+    measured in (previous step, step + 1e-9] between vehicles present at that step, as a
+    scan step by step does; a record 0.5 ns after a step belongs to that step and the next."""
+    from v2v.run import _log_truth_and_links
+
+    steps = _steps(8)
+    t_rec = np.array([-0.05, 0.0, 0.1, 0.1 + 5e-10, 0.15, 0.3, 0.3, 0.35, 0.5, 0.52, 0.7, 0.71, 0.9])
+    rng = np.random.default_rng(1)
+    perm = rng.permutation(len(t_rec))  # records need not arrive in time order
+    ends = [("lead", "veh.1"), ("veh.1", "veh_2"), ("lead", "veh_2")]
+    pairs = [("lead", "gone") if i == 9 else ends[i % len(ends)] for i in range(len(t_rec))]
+    meas = SimpleNamespace(t_s=t_rec[perm], a=tuple(pairs[i][0] for i in perm), b=tuple(pairs[i][1] for i in perm),
+                           los=(np.arange(len(t_rec)) % 2 == 0)[perm], n=len(t_rec))
+    prev = -0.02
+    lg = _Recorder()
+    assert _log_truth_and_links(lg, steps, meas, None, {}, prev) == steps[-1].t_s
+    expected, p, logged = [], prev, []
+    for st in steps:  # the per-step scan
+        idx = [k for k in np.argsort(meas.t_s, kind="stable")
+               if p < meas.t_s[k] <= st.t_s + 1e-9 and meas.a[k] in st.vehicles and meas.b[k] in st.vehicles]
+        logged += [int(perm[k]) for k in idx]
+        if idx:
+            expected.append(("links", st.t_s, "uwb", [st.vehicles[meas.a[k]].xyz_m.tolist() for k in idx],
+                             [st.vehicles[meas.b[k]].xyz_m.tolist() for k in idx],
+                             ["los" if meas.los[k] else "nlos" for k in idx]))
+        p = st.t_s
+    got = [c for c in lg.calls if c[0] == "links"]
+    assert got == expected
+    # record 3 (0.1 s + 0.5 ns) is logged at steps 0.1 and 0.2, record 2 (0.1 s) at 0.1 only; not logged:
+    # 0 (before prev), 5 (step 0.3, veh_2 absent), 8 (step 0.5, nobody), 9 (a vehicle not in the
+    # cluster), 11 and 12 (after the last step)
+    assert logged.count(3) == 2 and logged.count(2) == 1
+    assert set(range(len(t_rec))) - set(logged) == {0, 5, 8, 9, 11, 12}
+    assert [c[1] for c in lg.calls if c[0] == "truth"] == [st.t_s for st in steps]

@@ -674,7 +674,8 @@ class _ReplayState:
             return
         steps, self.steps = self.steps[:k], self.steps[k:]
         uwb = concat_ranges(self.uwb) if self.uwb else None
-        bearings = _concat_bearings(self.bearings) if self.bearings else None
+        parts = [b for b in self.bearings if b.n]  # the chunk's part and what the last flush left
+        bearings = (parts[0] if len(parts) == 1 else _concat_bearings(parts)) if parts else None
         self.prev = _log_truth_and_links(logger, steps, uwb, bearings, self.sky, self.prev)
         last = self.prev
         from v2v.pipeline import _subset_bearings
@@ -686,53 +687,84 @@ class _ReplayState:
 
 
 def _log_truth_and_links(logger, steps, uwb, bearings, sky_every: dict[int, Any], prev: float = -np.inf) -> float:
-    """Log truth, links measured in (previous step, step] and the 1 Hz sky plots; returns the last step time."""
-    # records in time order, so each step's window is a searchsorted slice (not a scan of the run)
-    series = []
+    """Log truth, links measured in (previous step, step] and the 1 Hz sky plots; returns the last step time.
+
+    All steps go to the logger in one batch per entity (``log_truth_many``, ``log_links_many``,
+    ``log_satellites_many``): the same rows as one ``log_truth`` / ``log_links`` /
+    ``log_satellites`` call per step.
+    """
+    from itertools import repeat
+
+    if not steps:
+        return prev
+    logger.log_truth_many(steps)
+    t_steps = np.array([st.t_s for st in steps])
+    # antenna of every vehicle at every step, NaN where absent
+    vehicle_index: dict[str, int] = {}
+    cells = [(j, vehicle_index.setdefault(v, len(vehicle_index))) for j, st in enumerate(steps) for v in st.vehicles]
+    xyz = np.full((len(steps), len(vehicle_index), 3), np.nan)
+    present = np.zeros((len(steps), len(vehicle_index)), dtype=bool)
+    if cells:
+        js, vs = np.array(cells).T
+        xyz[js, vs] = [s.xyz_m for st in steps for s in st.vehicles.values()]
+        present[js, vs] = True
     for kind, meas in (("uwb", uwb), ("bearing", bearings)):
-        if meas is not None and meas.n:
-            order = np.argsort(meas.t_s, kind="stable")
-            series.append((kind, meas, order, meas.t_s[order]))
-    for st in steps:
-        logger.log_truth(st.t_s, st)
-        for kind, meas, order, tt in series:
-            lo, hi = np.searchsorted(tt, prev, side="right"), np.searchsorted(tt, st.t_s + 1e-9, side="right")
-            idx = [int(k) for k in order[lo:hi] if meas.a[k] in st.vehicles and meas.b[k] in st.vehicles]
-            if idx:
-                a = np.array([st.vehicles[meas.a[k]].xyz_m for k in idx])
-                b = np.array([st.vehicles[meas.b[k]].xyz_m for k in idx])
-                logger.log_links(st.t_s, kind, a, b, ["los" if meas.los[k] else "nlos" for k in idx])
-        eps = sky_every.get(round(st.t_s * 1e6))
-        if eps:
-            for v, ep in eps.items():
-                logger.log_satellites(st.t_s, v, ep.prn, ep.azimuth_rad, ep.elevation_rad, ep.los)
-        prev = st.t_s
-    return prev
+        if meas is None or not meas.n:
+            continue
+        # records in time order; step j takes those in (t[j-1], t[j] + 1e-9] (t[-1] = prev)
+        order = np.argsort(meas.t_s, kind="stable")
+        tt = meas.t_s[order]
+        lo = np.searchsorted(tt, np.concatenate([[prev], t_steps[:-1]]), side="right")
+        hi = np.searchsorted(tt, t_steps + 1e-9, side="right")
+        n = np.maximum(hi - lo, 0)
+        step_of = np.repeat(np.arange(len(steps)), n)
+        rec = order[np.arange(n.sum()) - np.repeat(np.cumsum(n) - n, n) + np.repeat(lo, n)]
+        ia, ib = (np.fromiter(map(vehicle_index.get, ends, repeat(-1)), dtype=np.intp, count=meas.n)[rec]
+                  for ends in (meas.a, meas.b))
+        keep = (ia >= 0) & (ib >= 0)
+        keep[keep] = present[step_of[keep], ia[keep]] & present[step_of[keep], ib[keep]]
+        step_of, rec, ia, ib = step_of[keep], rec[keep], ia[keep], ib[keep]
+        counts = np.bincount(step_of, minlength=len(steps))
+        logged = counts > 0
+        if logged.any():
+            logger.log_links_many(t_steps[logged], kind, counts[logged], xyz[step_of, ia], xyz[step_of, ib],
+                                  np.where(meas.los[rec], "los", "nlos"))
+    sky = [(st.t_s, v, ep) for st in steps for v, ep in sky_every.get(round(st.t_s * 1e6), {}).items()]
+    if sky:
+        logger.log_satellites_many([t for t, _, _ in sky], [v for _, v, _ in sky], [len(ep.prn) for _, _, ep in sky],
+                                   *(np.concatenate([getattr(ep, f) for _, _, ep in sky])
+                                     for f in ("prn", "azimuth_rad", "elevation_rad", "los")))
+    return steps[-1].t_s
 
 
 def _epoch_logger(logger, georef: GeoReference):
     """Callback logging each solution's estimates (net XY, around the lead's true antenna) and errors."""
-    cache: dict[str, float] = {}
+    from operator import itemgetter
+
+    cache: dict[str, tuple[float, float]] = {}  # cos, sin of the grid convergence at the first lead position
+    fields = itemgetter("vehicle", "est_e_m", "est_n_m", "cov_ee_m2", "cov_en_m2", "cov_nn_m2", "along_err_m",
+                        "across_err_m", "sigma_along_m", "sigma_across_m", "nees_pos", "used_pr", "rejected_pr",
+                        "rejected_uwb", "rejected_bearing", "rejected_doppler")
+    nan = float("nan")
 
     def on_epoch(t_s: float, solution: str, ekf, step: TrafficStep, rows: list[dict[str, Any]]) -> None:
-        lead = ekf.layout.lead
-        lst = step.vehicles[lead]
-        if "gamma" not in cache:
-            cache["gamma"] = georef.grid_convergence_rad(float(lst.xyz_m[0]), float(lst.xyz_m[1]))
-        g = cache["gamma"]
-        c, s = np.cos(g), np.sin(g)
+        lst = step.vehicles[ekf.layout.lead]
+        if not cache:
+            g = georef.grid_convergence_rad(float(lst.xyz_m[0]), float(lst.xyz_m[1]))
+            cache["cos_sin"] = (np.cos(g), np.sin(g))
+        c, s = cache["cos_sin"]
+        x0, y0 = lst.xyz_m[0], lst.xyz_m[1]
         ids, xy, cov = [], [], []
         for r in rows:
             if not r["initialized"]:
                 continue
-            e, n = r["est_e_m"], r["est_n_m"]
-            ids.append(r["vehicle"])
-            xy.append([lst.xyz_m[0] + e * c - n * s, lst.xyz_m[1] + e * s + n * c])
-            cov.append([[r["cov_ee_m2"], r["cov_en_m2"]], [r["cov_en_m2"], r["cov_nn_m2"]]])
-            logger.log_errors(t_s, solution, r["vehicle"], r["along_err_m"], r["across_err_m"], r["sigma_along_m"],
-                              r["sigma_across_m"], r["nees_pos"], float("nan"), int(r["used_pr"]),
-                              int(r["rejected_pr"] + r["rejected_uwb"] + r["rejected_bearing"] + r["rejected_doppler"]))
+            v, e, n, cee, cen, cnn, along, across, s_along, s_across, nees, used, rej_pr, rej_uwb, rej_b, rej_d = fields(r)
+            ids.append(v)
+            xy.append([x0 + e * c - n * s, y0 + e * s + n * c])
+            cov.append([[cee, cen], [cen, cnn]])
+            logger.log_errors(t_s, solution, v, along, across, s_along, s_across, nees, nan, int(used),
+                              int(rej_pr + rej_uwb + rej_b + rej_d))
         if ids:
-            logger.log_estimates(t_s, solution, ids, np.array(xy), np.array(cov))
+            logger.log_estimates(t_s, solution, ids, xy, cov)
 
     return on_epoch

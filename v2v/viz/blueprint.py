@@ -46,6 +46,7 @@ then a row with the sky plots (one tab per vehicle) and a map of the geodetic tr
 
 from __future__ import annotations
 
+import functools
 from collections.abc import Iterable, Sequence
 
 import rerun as rr
@@ -160,7 +161,17 @@ def default_blueprint(
     show_map : bool
         Add the MapView of ``map/**`` (needs map tiles from the network when *viewed*;
         nothing is fetched when the file is written).
+
+    The blueprint is cached by its arguments (the runs of a sweep share it; it is only
+    read when sent), so treat the returned object as read-only.
     """
+    return _default_blueprint(tuple(solutions), tuple(vehicle_ids), tuple(sky_vehicle_ids), show_map)
+
+
+@functools.lru_cache(maxsize=8)
+def _default_blueprint(
+    solutions: tuple[str, ...], vehicle_ids: tuple[str, ...], sky_vehicle_ids: tuple[str, ...], show_map: bool
+) -> rrb.Blueprint:
     solutions = list(solutions)
     pairs = [(s, v) for s in solutions for v in vehicle_ids]
     right: list[rrb.Container | rrb.View] = []

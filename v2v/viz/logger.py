@@ -22,6 +22,11 @@ and aborts when the block raises, so a failed run never leaves a replay that loo
         for step in steps:
             replay.log_truth(step.t_s, step)
 
+Many rows at once: ``log_truth_many``, ``log_links_many`` and ``log_satellites_many``
+log the rows of many steps in one call (what the per-step calls would log, in order);
+the defaults here loop over the per-step methods, an implementation overrides them to
+vectorize (``v2v.run`` logs each 30 s chunk's truth, links and sky plots this way).
+
 The entity layout of the recording is documented in :mod:`v2v.viz.blueprint`.
 """
 
@@ -123,6 +128,52 @@ class ReplayLogger(ABC):
     ) -> None:
         """One row of the error time series of ``vehicle_id`` under ``solution``."""
 
+    # -- batches: one call for many rows. The defaults log row by row; an implementation
+    # overrides them when it can do better (RerunReplayLogger vectorizes them).
+
+    def log_truth_many(self, steps: Sequence[TrafficStep]) -> None:
+        """:meth:`log_truth` of each step, at its own ``step.t_s``, in order."""
+        for step in steps:
+            self.log_truth(step.t_s, step)
+
+    def log_links_many(
+        self,
+        t_s: ArrayLike,
+        kind: str,
+        counts: ArrayLike,
+        a_xyz_m: ArrayLike,
+        b_xyz_m: ArrayLike,
+        status: Sequence[str],
+    ) -> None:
+        """:meth:`log_links` at each time ``t_s[j]`` with its ``counts[j]`` links: ``a_xyz_m``,
+        ``b_xyz_m`` ``(sum(counts), 3)`` and ``status`` hold the rows one after another."""
+        a = np.asarray(a_xyz_m, dtype=float).reshape(-1, 3)
+        b = np.asarray(b_xyz_m, dtype=float).reshape(-1, 3)
+        status = list(status)
+        lo = 0
+        for t, m in zip(np.asarray(t_s, dtype=float).tolist(), np.asarray(counts, dtype=int).tolist(), strict=True):
+            self.log_links(t, kind, a[lo : lo + m], b[lo : lo + m], status[lo : lo + m])
+            lo += m
+
+    def log_satellites_many(
+        self,
+        t_s: ArrayLike,
+        vehicle_ids: Sequence[str],
+        counts: ArrayLike,
+        prn: ArrayLike,
+        az_rad: ArrayLike,
+        el_rad: ArrayLike,
+        los: ArrayLike,
+    ) -> None:
+        """:meth:`log_satellites` of ``vehicle_ids[j]`` at ``t_s[j]`` with its ``counts[j]``
+        satellites: ``prn``, ``az_rad``, ``el_rad``, ``los`` hold the rows one after another."""
+        prn, az, el, ok = (np.asarray(x).reshape(-1) for x in (prn, az_rad, el_rad, los))
+        lo = 0
+        for t, v, m in zip(np.asarray(t_s, dtype=float).tolist(), vehicle_ids,
+                           np.asarray(counts, dtype=int).tolist(), strict=True):
+            self.log_satellites(t, v, prn[lo : lo + m], az[lo : lo + m], el[lo : lo + m], ok[lo : lo + m])
+            lo += m
+
     @abstractmethod
     def close(self) -> None:
         """Flush everything and publish the recording (atomically). Idempotent."""
@@ -153,6 +204,15 @@ class NullLogger(ReplayLogger):
         pass
 
     def log_links(self, t_s, kind, a_xyz_m, b_xyz_m, status) -> None:
+        pass
+
+    def log_truth_many(self, steps) -> None:
+        pass
+
+    def log_links_many(self, t_s, kind, counts, a_xyz_m, b_xyz_m, status) -> None:
+        pass
+
+    def log_satellites_many(self, t_s, vehicle_ids, counts, prn, az_rad, el_rad, los) -> None:
         pass
 
     def log_satellites(self, t_s, vehicle_id, prn, az_rad, el_rad, los) -> None:

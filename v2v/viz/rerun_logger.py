@@ -14,16 +14,26 @@ How it writes
   touched.
 * Static geometry is logged once with ``static=True``.
 * Scene data (boxes, points, ellipses, links, sky plots) is buffered in memory as plain
-  numpy rows, one row per call, and sent column-wise with ``RecordingStream.send_columns``
+  numpy rows and sent column-wise with ``RecordingStream.send_columns``
   (``Archetype.columns(...)``; per-instance components ``.partition(lengths)`` with the
   row's instance count, per-row constants such as ``radii`` or a single colour as
   unit-length rows, exactly what ``log`` of the same archetype would have stored) once
   ``flush_rows`` rows are waiting and at close. Building one archetype and calling
   ``log`` per call cost ~0.4 ms (most of the replay's overhead); the recording's content
   is the same: same entity paths, components, values and ``sim_time`` stamps.
-* Error time series are buffered the same way and sent with
-  ``RecordingStream.send_columns(path, [rr.TimeColumn(TIMELINE, duration=t)],
-  rr.Scalars.columns(scalars=...))``.
+* Work is batched, not done per call: the ``*_many`` methods (``log_truth_many``,
+  ``log_links_many``, ``log_satellites_many``) turn many steps into rows with one
+  vectorized pass per entity, and the single-step methods are the same code with one
+  row; ``log_estimates`` only checks and copies its arguments, the points and
+  uncertainty ellipses of all waiting calls are computed together when the scene is sent
+  (one batched ``eigh``: the same per-matrix LAPACK call, so the same values). What a
+  sweep's runs share is built once and cached: the static scene by its geometry
+  (:func:`static_world`: lane triangulation, extruded buildings), the sky-plot grid and
+  the default blueprint.
+* Error time series are buffered per (solution, vehicle) as rows of the eight series and
+  sent with ``RecordingStream.send_columns(path, [rr.TimeColumn(TIMELINE, duration=t)],
+  [column])``, ``column`` the ``rr.ComponentColumn`` of ``Scalars:scalars`` that
+  ``rr.Scalars.columns(scalars=...)`` would build (made directly: ~30 us less per entity).
 
 Geometry
 --------
@@ -46,6 +56,7 @@ Geometry
 
 from __future__ import annotations
 
+import functools
 import math
 import os
 import tempfile
@@ -99,8 +110,10 @@ class RerunReplayParams:
     recording_id : str | None
         Fixed recording id (e.g. derived from the run's seed); ``None``: random.
     flush_rows : int
-        Rows (error-series rows; scene rows, one per logging call) buffered before they
-        are sent with ``send_columns``.
+        Rows (error-series rows; scene rows, one per step and entity) buffered before
+        they are sent with ``send_columns``. Every send costs ~0.5 ms per entity whatever
+        its size, so a short run is best sent once, at close (8192 rows: ~100 s of a
+        3-car run; at 40 cars with all-pairs bearings ~55 MB of buffered links).
     ellipse_probability : float
         Probability mass inside the drawn uncertainty ellipse (0.95: the 95 % ellipse,
         k = 2.4477 sigma; 1 - exp(-1/2) = 0.3935 gives the 1-sigma ellipse).
@@ -114,7 +127,7 @@ class RerunReplayParams:
 
     application_id: str = "v2v"
     recording_id: str | None = None
-    flush_rows: int = 4096
+    flush_rows: int = 8192
     ellipse_probability: float = 0.95
     ellipse_points: int = 37
     estimate_z_m: float = 0.2
@@ -143,12 +156,91 @@ def triangulate_polygon(xy_m: ArrayLike) -> FloatArray:
     tris = shapely.get_parts(shapely.constrained_delaunay_triangles(poly))
     if len(tris) == 0:
         return np.zeros((0, 3, 2))
-    coords = np.stack([np.asarray(t.exterior.coords)[:3] for t in tris])
+    coords = shapely.get_coordinates(tris).reshape(-1, 4, 2)[:, :3]  # closed rings of 3 + 1 vertices
     e1 = coords[:, 1] - coords[:, 0]
     e2 = coords[:, 2] - coords[:, 0]
     cw = (e1[:, 0] * e2[:, 1] - e1[:, 1] * e2[:, 0]) < 0.0
     coords[cw] = coords[cw][:, ::-1]
     return coords
+
+
+def lane_surface_triangles(lanes: Sequence[tuple[float, FloatArray]]) -> FloatArray:
+    """Triangle vertices ``(3 T, 2)`` covering the lane surfaces.
+
+    ``lanes``: per lane its width in metres and its centre line ``(k, 2)`` net XY. Each
+    lane is the centre line buffered by half its width (flat caps, mitre joins),
+    triangulated with :func:`triangulate_polygon`.
+    """
+    tris = []
+    for width_m, xy in lanes:
+        poly = shapely.LineString(xy).buffer(0.5 * width_m, cap_style="flat", join_style="mitre", mitre_limit=3.0)
+        for part in shapely.get_parts(poly):
+            if part.area > 0.0:
+                tris.append(triangulate_polygon(np.asarray(part.exterior.coords)[:-1]))
+    return np.concatenate(tris).reshape(-1, 2) if tris else np.zeros((0, 2))
+
+
+@functools.lru_cache(maxsize=2)
+def static_world(
+    lanes: tuple[tuple[float, bytes], ...],
+    buildings: tuple[tuple[bytes, float], ...],
+    foliage: tuple[tuple[bytes, float], ...],
+    geo: GeoReference,
+    show_map: bool,
+) -> tuple[tuple[str, rr.AsComponents], ...]:
+    """The static scene as ``(entity path, archetype)`` pairs, to be logged with ``static=True``.
+
+    Lanes: per lane its width in metres and its centre line ``(k, 2)`` net XY; buildings
+    and foliage: per area its footprint ``(K, 2)`` net XY and its height in metres; arrays
+    as the bytes of float64 arrays, so that the arguments are hashable: the runs of a sweep
+    share the network and the scene is built once (lane triangulation and extrusion,
+    geodetic lane lines) and only logged again.
+    """
+
+    def xy_of(raw: bytes) -> FloatArray:
+        return np.frombuffer(raw, dtype=np.float64).reshape(-1, 2)
+
+    out: list[tuple[str, rr.AsComponents]] = []
+    lane_xy = [xy_of(raw) for _, raw in lanes]
+    if lane_xy:
+        strips = [np.column_stack([xy, np.full(len(xy), 0.02)]) for xy in lane_xy]
+        out.append((bp.LANES, rr.LineStrips3D(strips, radii=0.05, colors=LANE_LINE_RGB)))
+        tri = lane_surface_triangles([(w, xy) for (w, _), xy in zip(lanes, lane_xy, strict=True)])
+        if len(tri):
+            verts = np.column_stack([tri, np.zeros(len(tri))])
+            out.append((
+                bp.LANE_SURFACE,
+                rr.Mesh3D(
+                    vertex_positions=verts,
+                    triangle_indices=np.arange(len(verts), dtype=np.uint32).reshape(-1, 3),
+                    albedo_factor=LANE_SURFACE_RGBA,
+                ),
+            ))
+        if show_map:
+            allpts = np.concatenate(lane_xy)
+            lat, lon = geo.xy_to_geodetic(allpts[:, 0], allpts[:, 1])
+            latlon = np.degrees(np.column_stack([lat, lon]))
+            geo_strips = np.split(latlon, np.cumsum([len(xy) for xy in lane_xy])[:-1])
+            out.append((
+                bp.MAP_LANES,
+                rr.GeoLineStrings(lat_lon=geo_strips, radii=rr.Radius.ui_points(1.5), colors=BACKGROUND_RGB),
+            ))
+    for path, items, rgba in ((bp.BUILDINGS, buildings, BUILDING_RGBA), (bp.FOLIAGE, foliage, FOLIAGE_RGBA)):
+        if items:
+            v, t, n = extrude_footprints([xy_of(raw) for raw, _ in items], [h for _, h in items])
+            out.append((path, rr.Mesh3D(vertex_positions=v, triangle_indices=t, vertex_normals=n, albedo_factor=rgba)))
+    return tuple(out)
+
+
+@functools.lru_cache(maxsize=1)
+def sky_grid() -> rr.LineStrips2D:
+    """Sky-plot grid (the same for every vehicle): elevation rings 0, 30, 60 deg, N-S and E-W axes."""
+    t = np.linspace(0.0, 2.0 * np.pi, 73)
+    rings = [np.column_stack([r * np.sin(t), -r * np.cos(t)]) for r in (90.0, 60.0, 30.0)]
+    axes = [np.array([[0.0, -90.0], [0.0, 90.0]]), np.array([[-90.0, 0.0], [90.0, 0.0]])]
+    return rr.LineStrips2D(
+        rings + axes, radii=0.3, colors=(120, 120, 120), labels=["0°", "30°", "60°", "N-S", "E-W"], draw_order=1.0
+    )
 
 
 def _ccw(xy: FloatArray) -> FloatArray:
@@ -286,6 +378,23 @@ class _SceneRows:
         for name, value in per_row.items():
             self.per_row[name].append(value)
 
+    def add_many(
+        self,
+        t_s: Sequence[float],
+        lengths: Sequence[int],
+        per_instance: Mapping[str, object],
+        per_row: Mapping[str, object],
+    ) -> None:
+        """Rows one after another: ``per_instance`` components hold all the rows' instances
+        concatenated (``sum(lengths)`` long), ``per_row`` components one value for every row."""
+        self.times.extend(t_s)
+        self.lengths.extend(lengths)
+        for name, value in per_instance.items():
+            self.per_instance[name].append(value)
+        n = len(t_s)
+        for name, value in per_row.items():
+            self.per_row[name].extend([value] * n)
+
     def send(self, rec: rr.RecordingStream, path: str) -> int:
         n_rows = len(self.times)
         if n_rows == 0:
@@ -313,6 +422,18 @@ class _SceneRows:
         return n_rows
 
 
+class _ErrorRows:
+    """Error time-series rows of one (solution, vehicle), waiting for ``send_columns``:
+    one value per series of :data:`v2v.viz.blueprint.ERROR_SERIES` per row."""
+
+    __slots__ = ("paths", "times", "rows")
+
+    def __init__(self, paths: tuple[str, ...]):
+        self.paths = paths
+        self.times: list[float] = []
+        self.rows: list[tuple[float, ...]] = []
+
+
 # ---------------------------------------------------------------------------- logger
 
 
@@ -338,9 +459,11 @@ class RerunReplayLogger(ReplayLogger):
         self._k = ellipse_scale(self.params.ellipse_probability)
         self._gamma_rad = 0.0
         self._rot_en_to_xy = np.eye(2)
-        # error series buffers: path -> (times, values), values flat (width per row fixed)
-        self._buf: dict[str, tuple[list[float], list[float], int]] = {}
+        # error series buffers: (solution, vehicle) -> its ERROR_SERIES paths, times, value rows
+        self._errors: dict[tuple[str, str], _ErrorRows] = {}
         self._buffered_rows = 0
+        # log_estimates calls not yet turned into rows: (t_s, solution, labels, xy, cov_en)
+        self._estimates: list[tuple[float, str, list[str], FloatArray, FloatArray]] = []
         self._scene: dict[str, _SceneRows] = {}
         self._scene_rows = 0
         self.scene_rows_sent = 0  # scene rows (one per logging call and entity) sent with send_columns
@@ -369,19 +492,43 @@ class RerunReplayLogger(ReplayLogger):
         per_row: Mapping[str, object],
     ) -> None:
         """Buffer one row of ``archetype`` at ``path`` (what one ``log`` at ``t_s`` would store)."""
-        buf = self._scene.get(path)
-        key = (archetype, tuple(per_instance), tuple(per_row))
-        if buf is not None and buf.key != key:
-            self.scene_rows_sent += buf.send(self._rec, path)
-            buf = None
-        if buf is None:
-            buf = self._scene[path] = _SceneRows(archetype, per_instance, per_row)
-        buf.add(float(t_s), int(n), per_instance, per_row)
+        self._scene_buffer(path, archetype, per_instance, per_row).add(float(t_s), int(n), per_instance, per_row)
         self._scene_rows += 1
         if self._scene_rows >= self.params.flush_rows:
             self._flush_scene()
 
+    def _add_rows(
+        self,
+        path: str,
+        archetype: type,
+        t_s: Sequence[float],
+        lengths: Sequence[int],
+        per_instance: Mapping[str, object],
+        per_row: Mapping[str, object],
+    ) -> None:
+        """Buffer rows at the times ``t_s`` with ``lengths`` instances each: what one ``log``
+        per row would store (see :meth:`_SceneRows.add_many` for the layout)."""
+        if len(t_s) == 0:
+            return
+        self._scene_buffer(path, archetype, per_instance, per_row).add_many(t_s, lengths, per_instance, per_row)
+        self._scene_rows += len(t_s)
+        if self._scene_rows >= self.params.flush_rows:
+            self._flush_scene()
+
+    def _scene_buffer(
+        self, path: str, archetype: type, per_instance: Mapping[str, object], per_row: Mapping[str, object]
+    ) -> _SceneRows:
+        """The buffer of ``path``; rows with other components send the waiting ones first."""
+        buf = self._scene.get(path)
+        if buf is not None and buf.key != (archetype, tuple(per_instance), tuple(per_row)):
+            self.scene_rows_sent += buf.send(self._rec, path)
+            buf = None
+        if buf is None:
+            buf = self._scene[path] = _SceneRows(archetype, per_instance, per_row)
+        return buf
+
     def _flush_scene(self) -> None:
+        self._estimate_rows()
         for path, buf in self._scene.items():
             self.scene_rows_sent += buf.send(self._rec, path)
         self._scene_rows = 0
@@ -402,7 +549,6 @@ class RerunReplayLogger(ReplayLogger):
         geo: GeoReference,
     ) -> None:
         self._check_open()
-        rec = self._rec
         lane_xy = {
             lid: np.asarray(xy, dtype=float).reshape(-1, np.shape(xy)[-1])[:, :2] for lid, xy in lanes.items()
         }
@@ -410,118 +556,59 @@ class RerunReplayLogger(ReplayLogger):
         if lane_xy:
             allpts = np.concatenate(list(lane_xy.values()))
             cx, cy = (allpts.min(axis=0) + allpts.max(axis=0)) / 2.0
+            self._estimate_rows()  # estimates logged before keep the rotation they were logged with
             self._gamma_rad = geo.grid_convergence_rad(float(cx), float(cy))
             self._rot_en_to_xy = rotation_2d(self._gamma_rad)
-            strips = [np.column_stack([xy, np.full(len(xy), 0.02)]) for xy in lane_xy.values()]
-            rec.log(bp.LANES, rr.LineStrips3D(strips, radii=0.05, colors=LANE_LINE_RGB), static=True)
-            surf_tris = []
-            for lid, xy in lane_xy.items():
-                w = float(lane_widths.get(lid, 3.2))
-                poly = shapely.LineString(xy).buffer(
-                    0.5 * w, cap_style="flat", join_style="mitre", mitre_limit=3.0
-                )
-                for part in shapely.get_parts(poly):
-                    if part.area > 0.0:
-                        surf_tris.append(triangulate_polygon(np.asarray(part.exterior.coords)[:-1]))
-            if surf_tris:
-                tri = np.concatenate(surf_tris).reshape(-1, 2)
-                verts = np.column_stack([tri, np.zeros(len(tri))])
-                rec.log(
-                    bp.LANE_SURFACE,
-                    rr.Mesh3D(
-                        vertex_positions=verts,
-                        triangle_indices=np.arange(len(verts), dtype=np.uint32).reshape(-1, 3),
-                        albedo_factor=LANE_SURFACE_RGBA,
-                    ),
-                    static=True,
-                )
-            if self.params.show_map:
-                sizes = [len(xy) for xy in lane_xy.values()]
-                lat, lon = geo.xy_to_geodetic(allpts[:, 0], allpts[:, 1])
-                latlon = np.degrees(np.column_stack([lat, lon]))
-                geo_strips = np.split(latlon, np.cumsum(sizes)[:-1])
-                rec.log(
-                    bp.MAP_LANES,
-                    rr.GeoLineStrings(
-                        lat_lon=geo_strips, radii=rr.Radius.ui_points(1.5), colors=BACKGROUND_RGB
-                    ),
-                    static=True,
-                )
-        for path, items, rgba in (
-            (bp.BUILDINGS, buildings, BUILDING_RGBA),
-            (bp.FOLIAGE, foliage, FOLIAGE_RGBA),
-        ):
-            if not items:
-                continue
-            v, t, n = extrude_footprints(
-                [b.footprint_xy_m for b in items], [float(b.height_m) for b in items]
+
+        def areas(items: Sequence[Footprint]) -> tuple[tuple[bytes, float], ...]:
+            return tuple(
+                (np.ascontiguousarray(np.asarray(b.footprint_xy_m, dtype=float)[:, :2]).tobytes(), float(b.height_m))
+                for b in items
             )
-            rec.log(
-                path,
-                rr.Mesh3D(vertex_positions=v, triangle_indices=t, vertex_normals=n, albedo_factor=rgba),
-                static=True,
-            )
+
+        world = static_world(
+            tuple((float(lane_widths.get(lid, 3.2)), xy.tobytes()) for lid, xy in lane_xy.items()),
+            areas(buildings),
+            areas(foliage),
+            geo,
+            self.params.show_map,
+        )
+        for path, archetype in world:
+            self._rec.log(path, archetype, static=True)
 
     # -- truth ----------------------------------------------------------------------
 
     def log_truth(self, t_s: float, step: TrafficStep) -> None:
-        self._at(t_s)
-        states = list(step.vehicles.values())
-        if states:
-            az = np.array([s.azimuth_rad for s in states])
-            grid_az = az - self._gamma_rad
-            fwd = np.column_stack([np.sin(grid_az), np.cos(grid_az)])
-            size = np.array([[s.length_m, s.width_m, s.height_m] for s in states])
-            front = np.array([s.front_bumper_xy_m for s in states], dtype=float)
-            centre_xy = front - 0.5 * size[:, :1] * fwd
-            centres = np.column_stack([centre_xy, 0.5 * size[:, 2]])
-            yaw = 0.5 * np.pi - grid_az
-            quat = np.column_stack([np.zeros((len(states), 2)), np.sin(yaw / 2), np.cos(yaw / 2)])
-            colors = np.array([LEAD_RGB if s.is_lead else FOLLOWER_RGB for s in states], dtype=np.uint8)
-            labels = [s.vehicle_id for s in states]
-            n = len(states)
-            self._add_row(
-                bp.TRUTH,
-                rr.Boxes3D,
-                t_s,
-                n,
-                {
-                    "half_sizes": 0.5 * size,
-                    "centers": centres,
-                    "quaternions": quat,
-                    "colors": colors,
-                    "labels": labels,
-                },
-                {},
-            )
-            antennas = np.array([s.xyz_m for s in states], dtype=float)
-            self._add_row(
-                bp.TRUTH_ANTENNAS,
-                rr.Points3D,
-                t_s,
-                n,
-                {"positions": antennas, "colors": colors},
-                {"radii": 0.1},
-            )
-            if self.params.show_map:
-                latlon = np.degrees([[s.lat_rad, s.lon_rad] for s in states])
-                self._add_row(
-                    bp.MAP_VEHICLES,
-                    rr.GeoPoints,
-                    t_s,
-                    n,
-                    {"positions": latlon, "colors": colors},
-                    {"radii": float(rr.Radius.ui_points(5.0))},
-                )
-        else:
-            self._add_row(bp.TRUTH, rr.Boxes3D, t_s, 0, {"half_sizes": np.zeros((0, 3))}, {})
-        bg = np.asarray(step.background, dtype=float).reshape(-1, 6)
+        self._truth_rows([float(t_s)], [step])
+
+    def log_truth_many(self, steps: Sequence[TrafficStep]) -> None:
+        """All steps' truth rows in a few vectorized calls (the same rows as :meth:`log_truth`)."""
+        steps = list(steps)
+        self._truth_rows([float(st.t_s) for st in steps], steps)
+
+    def _truth_rows(self, times: list[float], steps: list[TrafficStep]) -> None:
+        self._check_open()
+        if not steps:
+            return
+        # runs of steps with and without cluster vehicles: an empty step stores only
+        # ``half_sizes`` (as ``log`` would), which sends the rows waiting before it
+        start = 0
+        for k in range(1, len(steps) + 1):
+            if k == len(steps) or bool(steps[k].vehicles) != bool(steps[start].vehicles):
+                if steps[start].vehicles:
+                    self._vehicle_rows(times[start:k], steps[start:k])
+                else:
+                    self._add_rows(bp.TRUTH, rr.Boxes3D, times[start:k], [0] * (k - start),
+                                   {"half_sizes": np.zeros((0, 3))}, {})
+                start = k
+        bgs = [np.asarray(st.background, dtype=float).reshape(-1, 6) for st in steps]
+        bg = np.concatenate(bgs)
         yaw_bg = 0.5 * np.pi - (bg[:, 2] - self._gamma_rad)
-        self._add_row(
+        self._add_rows(
             bp.BACKGROUND,
             rr.Boxes3D,
-            t_s,
-            len(bg),
+            times,
+            [len(b) for b in bgs],
             {
                 "half_sizes": 0.5 * bg[:, 3:6],
                 "centers": np.column_stack([bg[:, :2], 0.5 * bg[:, 5]]),
@@ -531,6 +618,49 @@ class RerunReplayLogger(ReplayLogger):
             },
             {"colors": np.array(BACKGROUND_RGB, dtype=np.uint8)},
         )
+
+    def _vehicle_rows(self, times: list[float], steps: list[TrafficStep]) -> None:
+        """Boxes, antennas (and map points) of steps that all have cluster vehicles."""
+        states = [s for st in steps for s in st.vehicles.values()]
+        lengths = [len(st.vehicles) for st in steps]
+        az = np.array([s.azimuth_rad for s in states])
+        grid_az = az - self._gamma_rad
+        fwd = np.column_stack([np.sin(grid_az), np.cos(grid_az)])
+        size = np.array([[s.length_m, s.width_m, s.height_m] for s in states])
+        front = np.array([s.front_bumper_xy_m for s in states], dtype=float)
+        centre_xy = front - 0.5 * size[:, :1] * fwd
+        centres = np.column_stack([centre_xy, 0.5 * size[:, 2]])
+        yaw = 0.5 * np.pi - grid_az
+        quat = np.column_stack([np.zeros((len(states), 2)), np.sin(yaw / 2), np.cos(yaw / 2)])
+        colors = np.array([LEAD_RGB if s.is_lead else FOLLOWER_RGB for s in states], dtype=np.uint8)
+        self._add_rows(
+            bp.TRUTH,
+            rr.Boxes3D,
+            times,
+            lengths,
+            {
+                "half_sizes": 0.5 * size,
+                "centers": centres,
+                "quaternions": quat,
+                "colors": colors,
+                "labels": [s.vehicle_id for s in states],
+            },
+            {},
+        )
+        antennas = np.array([s.xyz_m for s in states], dtype=float)
+        self._add_rows(
+            bp.TRUTH_ANTENNAS, rr.Points3D, times, lengths, {"positions": antennas, "colors": colors}, {"radii": 0.1}
+        )
+        if self.params.show_map:
+            latlon = np.degrees([[s.lat_rad, s.lon_rad] for s in states])
+            self._add_rows(
+                bp.MAP_VEHICLES,
+                rr.GeoPoints,
+                times,
+                lengths,
+                {"positions": latlon, "colors": colors},
+                {"radii": float(rr.Radius.ui_points(5.0))},
+            )
 
     # -- estimates --------------------------------------------------------------------
 
@@ -542,60 +672,101 @@ class RerunReplayLogger(ReplayLogger):
         est_xy_m: ArrayLike,
         cov_en_m2: ArrayLike,
     ) -> None:
-        self._at(t_s)
-        xy = np.asarray(est_xy_m, dtype=float).reshape(-1, 2)
-        cov = np.asarray(cov_en_m2, dtype=float).reshape(-1, 2, 2)
+        """Checked and copied now; points and ellipses are made for all waiting calls at
+        once (:meth:`_estimate_rows`) when the scene is sent."""
+        self._check_open()
+        xy = np.array(est_xy_m, dtype=float).reshape(-1, 2)
+        cov = np.array(cov_en_m2, dtype=float).reshape(-1, 2, 2)
         if not (len(xy) == len(cov) == len(vehicle_ids)):
             raise ValueError(
                 f"log_estimates: {len(vehicle_ids)} ids, {len(xy)} positions, {len(cov)} covariances"
             )
         self._solutions.setdefault(solution)
-        rgb = self._color_of(solution)
+        self._color_of(solution)
+        self._estimates.append((float(t_s), solution, [str(v) for v in vehicle_ids], xy, cov))
+        if self._scene_rows + 2 * len(self._estimates) >= self.params.flush_rows:  # a points and an ellipses row
+            self._flush_scene()
+
+    def _estimate_rows(self) -> None:
+        """Turn the waiting :meth:`log_estimates` calls into points and ellipse rows, one
+        vectorized pass per solution (rows in call order)."""
+        if not self._estimates:
+            return
+        pending, self._estimates = self._estimates, []
+        by_solution: dict[str, list[tuple[float, str, list[str], FloatArray, FloatArray]]] = {}
+        for e in pending:
+            by_solution.setdefault(e[1], []).append(e)
         r = self._rot_en_to_xy
-        cov_xy = r @ cov @ r.T
         z = self.params.estimate_z_m
-        pts = np.column_stack([xy, np.full(len(xy), z)])
-        rgb_u8 = np.array(rgb, dtype=np.uint8)
-        self._add_row(
-            bp.estimates_path(solution),
-            rr.Points3D,
-            t_s,
-            len(pts),
-            {"positions": pts, "labels": [str(v) for v in vehicle_ids]},
-            {"radii": 0.12, "colors": rgb_u8},
-        )
-        ok = np.all(np.isfinite(cov_xy), axis=(1, 2)) & np.all(np.isfinite(xy), axis=1)
-        outline = ellipse_points(xy[ok], cov_xy[ok], self._k, self.params.ellipse_points)
-        strips = np.concatenate([outline, np.full(outline.shape[:2] + (1,), z)], axis=2)
-        self._add_row(
-            bp.ellipses_path(solution),
-            rr.LineStrips3D,
-            t_s,
-            len(strips),
-            {"strips": strips},
-            {"radii": 0.03, "colors": rgb_u8},
-        )
+        for solution, calls in by_solution.items():
+            times = [c[0] for c in calls]
+            lengths = np.array([len(c[3]) for c in calls])
+            xy = np.concatenate([c[3] for c in calls])
+            cov_xy = r @ np.concatenate([c[4] for c in calls]) @ r.T
+            rgb_u8 = np.array(self._color_of(solution), dtype=np.uint8)
+            self._add_rows(
+                bp.estimates_path(solution),
+                rr.Points3D,
+                times,
+                lengths.tolist(),
+                {"positions": np.column_stack([xy, np.full(len(xy), z)]), "labels": [v for c in calls for v in c[2]]},
+                {"radii": 0.12, "colors": rgb_u8},
+            )
+            ok = np.all(np.isfinite(cov_xy), axis=(1, 2)) & np.all(np.isfinite(xy), axis=1)
+            ok_before = np.concatenate([[0], np.cumsum(ok)])  # drawn ellipses before each instance
+            ends = np.cumsum(lengths)
+            n_ok = ok_before[ends] - ok_before[ends - lengths]
+            outline = ellipse_points(xy[ok], cov_xy[ok], self._k, self.params.ellipse_points)
+            strips = np.concatenate([outline, np.full(outline.shape[:2] + (1,), z)], axis=2)
+            self._add_rows(
+                bp.ellipses_path(solution),
+                rr.LineStrips3D,
+                times,
+                n_ok.tolist(),
+                {"strips": strips},
+                {"radii": 0.03, "colors": rgb_u8},
+            )
 
     # -- links ------------------------------------------------------------------------
 
     def log_links(
         self, t_s: float, kind: str, a_xyz_m: ArrayLike, b_xyz_m: ArrayLike, status: Sequence[str]
     ) -> None:
-        self._at(t_s)
+        status = np.asarray(status, dtype=str).reshape(-1)
+        self.log_links_many([t_s], kind, [len(status)], a_xyz_m, b_xyz_m, status)
+
+    def log_links_many(
+        self,
+        t_s: ArrayLike,
+        kind: str,
+        counts: ArrayLike,
+        a_xyz_m: ArrayLike,
+        b_xyz_m: ArrayLike,
+        status: Sequence[str],
+    ) -> None:
+        self._check_open()
+        times = np.asarray(t_s, dtype=float).reshape(-1).tolist()
+        lengths = np.asarray(counts, dtype=int).reshape(-1).tolist()
         a = np.asarray(a_xyz_m, dtype=float).reshape(-1, 3)
         b = np.asarray(b_xyz_m, dtype=float).reshape(-1, 3)
-        status = list(status)
-        if not (len(a) == len(b) == len(status)):
-            raise ValueError(f"log_links: {len(a)} starts, {len(b)} ends, {len(status)} statuses")
-        bad = sorted(set(status) - set(LINK_STATUSES))
-        if bad:
+        status = np.asarray(status, dtype=str).reshape(-1)
+        if not (len(a) == len(b) == len(status) == sum(lengths)) or len(times) != len(lengths):
+            raise ValueError(
+                f"log_links: {len(a)} starts, {len(b)} ends, {len(status)} statuses, "
+                f"{sum(lengths)} links in {len(lengths)} counts for {len(times)} times"
+            )
+        code = np.full(len(status), -1)
+        for i, name in enumerate(LINK_STATUSES):
+            code[status == name] = i
+        if (code < 0).any():
+            bad = sorted(set(status[code < 0].tolist()))
             raise ValueError(f"log_links: unknown status {bad}; expected one of {LINK_STATUSES}")
-        colors = np.array([STATUS_RGB[s] for s in status], dtype=np.uint8).reshape(-1, 3)
-        self._add_row(
+        colors = np.array([STATUS_RGB[s] for s in LINK_STATUSES], dtype=np.uint8)[code]
+        self._add_rows(
             bp.links_path(kind),
             rr.LineStrips3D,
-            t_s,
-            len(a),
+            times,
+            lengths,
             {"strips": np.stack([a, b], axis=1), "colors": colors},
             {"radii": 0.04},
         )
@@ -611,42 +782,58 @@ class RerunReplayLogger(ReplayLogger):
         el_rad: ArrayLike,
         los: ArrayLike,
     ) -> None:
-        self._at(t_s)
-        if vehicle_id not in self._sky_vehicles:
-            self._sky_vehicles[vehicle_id] = None
-            self._log_sky_grid(vehicle_id)
+        prn = np.asarray(prn).reshape(-1)
+        self.log_satellites_many([t_s], [vehicle_id], [len(prn)], prn, az_rad, el_rad, los)
+
+    def log_satellites_many(
+        self,
+        t_s: ArrayLike,
+        vehicle_ids: Sequence[str],
+        counts: ArrayLike,
+        prn: ArrayLike,
+        az_rad: ArrayLike,
+        el_rad: ArrayLike,
+        los: ArrayLike,
+    ) -> None:
+        self._check_open()
+        times = np.asarray(t_s, dtype=float).reshape(-1).tolist()
+        lengths = np.asarray(counts, dtype=int).reshape(-1)
+        vehicle_ids = list(vehicle_ids)
+        for v in vehicle_ids:
+            if v not in self._sky_vehicles:
+                self._sky_vehicles[v] = None
+                self._log_sky_grid(v)
         xy = sky_xy(az_rad, el_rad)
         los_b = np.asarray(los, dtype=bool).reshape(-1)
         labels = [str(p) for p in np.asarray(prn).reshape(-1)]
-        if not (len(xy) == len(los_b) == len(labels)):
+        if not (len(xy) == len(los_b) == len(labels) == lengths.sum()) or not (
+            len(times) == len(lengths) == len(vehicle_ids)
+        ):
             raise ValueError(
-                f"log_satellites: {len(labels)} PRNs, {len(xy)} directions, {len(los_b)} LOS flags"
+                f"log_satellites: {len(labels)} PRNs, {len(xy)} directions, {len(los_b)} LOS flags, "
+                f"{lengths.sum()} satellites in {len(lengths)} counts for {len(times)} times"
             )
         colors = np.where(los_b[:, None], np.array(LOS_RGB), np.array(NLOS_RGB)).astype(np.uint8)
-        self._add_row(
-            bp.sky_path(vehicle_id),
-            rr.Points2D,
-            t_s,
-            len(xy),
-            {"positions": xy, "colors": colors, "labels": labels},
-            {"radii": 2.5, "draw_order": 10.0},
-        )
+        rows_of: dict[str, list[int]] = {}
+        for j, v in enumerate(vehicle_ids):
+            rows_of.setdefault(v, []).append(j)
+        starts = np.cumsum(lengths) - lengths
+        for v, rows in rows_of.items():
+            if len(rows) == len(vehicle_ids):  # one vehicle: all instances, in order
+                inst = np.arange(len(labels))
+            else:
+                inst = np.concatenate([np.arange(starts[j], starts[j] + lengths[j]) for j in rows])
+            self._add_rows(
+                bp.sky_path(v),
+                rr.Points2D,
+                [times[j] for j in rows],
+                lengths[rows].tolist(),
+                {"positions": xy[inst], "colors": colors[inst], "labels": [labels[i] for i in inst.tolist()]},
+                {"radii": 2.5, "draw_order": 10.0},
+            )
 
     def _log_sky_grid(self, vehicle_id: str) -> None:
-        t = np.linspace(0.0, 2.0 * np.pi, 73)
-        rings = [np.column_stack([r * np.sin(t), -r * np.cos(t)]) for r in (90.0, 60.0, 30.0)]
-        axes = [np.array([[0.0, -90.0], [0.0, 90.0]]), np.array([[-90.0, 0.0], [90.0, 0.0]])]
-        self._rec.log(
-            bp.sky_grid_path(vehicle_id),
-            rr.LineStrips2D(
-                rings + axes,
-                radii=0.3,
-                colors=(120, 120, 120),
-                labels=["0°", "30°", "60°", "N-S", "E-W"],
-                draw_order=1.0,
-            ),
-            static=True,
-        )
+        self._rec.log(bp.sky_grid_path(vehicle_id), sky_grid(), static=True)
 
     # -- error time series --------------------------------------------------------------
 
@@ -665,28 +852,27 @@ class RerunReplayLogger(ReplayLogger):
         rejections: int,
     ) -> None:
         self._check_open()
-        self._solutions.setdefault(solution)
-        self._error_vehicles.setdefault(vehicle_id)
-        t = float(t_s)
-        sa, sx = float(sigma_along_m), float(sigma_across_m)
-        rows = (
-            ("along", (float(along_m),)),
-            ("along_sigma", (sa, -sa)),
-            ("across", (float(across_m),)),
-            ("across_sigma", (sx, -sx)),
-            ("nees", (float(nees),)),
-            ("nis", (float(nis),)),
-            ("n_sats", (float(n_sats),)),
-            ("rejections", (float(rejections),)),
-        )
-        for series, values in rows:
-            path = bp.error_path(solution, vehicle_id, series)
-            buf = self._buf.get(path)
-            if buf is None:
-                buf = self._buf[path] = ([], [], len(values))
+        buf = self._errors.get((solution, vehicle_id))
+        if buf is None:
+            self._solutions.setdefault(solution)
+            self._error_vehicles.setdefault(vehicle_id)
+            paths = tuple(bp.error_path(solution, vehicle_id, series) for series in bp.ERROR_SERIES)
+            for path, series in zip(paths, bp.ERROR_SERIES, strict=True):
                 self._log_series_style(path, solution, series)
-            buf[0].append(t)
-            buf[1].extend(values)
+            buf = self._errors[(solution, vehicle_id)] = _ErrorRows(paths)
+        buf.times.append(float(t_s))
+        buf.rows.append(
+            (
+                float(along_m),
+                float(sigma_along_m),
+                float(across_m),
+                float(sigma_across_m),
+                float(nees),
+                float(nis),
+                float(n_sats),
+                float(rejections),
+            )
+        )  # in bp.ERROR_SERIES order
         self._buffered_rows += 1
         if self._buffered_rows >= self.params.flush_rows:
             self._flush_series()
@@ -700,19 +886,27 @@ class RerunReplayLogger(ReplayLogger):
         self._rec.log(path, style, static=True)
 
     def _flush_series(self) -> None:
-        for path, (times, values, width) in self._buf.items():
-            if not times:
+        for buf in self._errors.values():
+            if not buf.times:
                 continue
-            n = len(times)
-            cols = rr.Scalars.columns(scalars=np.asarray(values, dtype=np.float64))
-            if width > 1:
-                cols = cols.partition(np.full(n, width))
+            n = len(buf.times)
+            values = np.array(buf.rows, dtype=np.float64)  # (n, len(ERROR_SERIES))
             # rounded nanoseconds, like the scene columns (a float array would be truncated)
-            ns = np.round(np.asarray(times, dtype=np.float64) * 1e9).astype(np.int64).astype("timedelta64[ns]")
-            self._rec.send_columns(path, indexes=[rr.TimeColumn(bp.TIMELINE, duration=ns)], columns=cols)
-            self.rows_sent += n
-            times.clear()
-            values.clear()
+            ns = np.round(np.asarray(buf.times, dtype=np.float64) * 1e9).astype(np.int64).astype("timedelta64[ns]")
+            index = [rr.TimeColumn(bp.TIMELINE, duration=ns)]
+            # the column rr.Scalars.columns(scalars=...) builds, without the archetype's overhead
+            descriptor = rr.Scalars.descriptor_scalars()
+            for j, (path, series) in enumerate(zip(buf.paths, bp.ERROR_SERIES, strict=True)):
+                if series.endswith("_sigma"):  # two lines per row: [+sigma, -sigma]
+                    v = values[:, j]
+                    col = rr.ComponentColumn(descriptor, rr.components.ScalarBatch(np.column_stack([v, -v]).reshape(-1)))
+                    col = col.partition(np.full(n, 2))
+                else:
+                    col = rr.ComponentColumn(descriptor, rr.components.ScalarBatch(np.ascontiguousarray(values[:, j])))
+                self._rec.send_columns(path, indexes=index, columns=[col])
+                self.rows_sent += n
+            buf.times.clear()
+            buf.rows.clear()
         self._buffered_rows = 0
 
     # -- closing --------------------------------------------------------------------------
