@@ -316,9 +316,9 @@ def _lz_state(n, veh0, nveh, az_ia, az_ir):
 @njit(**_JIT)
 def _lz_entry(P, Q, kq, lz, i, j):
     """``P_now[i, j]`` (see above); :func:`_lazy_entry` when no prediction is pending."""
-    a, b, part, order, meta, qv, qaz, az_pair, az_slot, az_ia, az_ir, qdiag, pend = lz
-    if pend[0] == 0:
+    if lz[12][0] == 0:  # (before unpacking the state: each array taken costs a reference count)
         return _lazy_entry(P, Q, kq, i, j)
+    a, b, part, order, meta, qv, qaz, az_pair, az_slot, az_ia, az_ir, qdiag, pend = lz
     pi, pj = part[i], part[j]
     v = a[i] * a[j] * P[i, j]
     if pj >= 0:
@@ -344,6 +344,9 @@ def _lz_entry(P, Q, kq, lz, i, j):
 @njit(**_JIT)
 def _lz_rel_cov(P, Q, kq, lz, sa, sb, out):
     """:func:`_rel_cov_lazy` on ``P_now`` (:func:`_lz_entry`)."""
+    if lz[12][0] == 0:
+        _rel_cov_lazy(P, Q, kq, sa, sb, out)
+        return
     for i in range(3):
         for j in range(3):
             v = 0.0
@@ -360,9 +363,9 @@ def _lz_rel_cov(P, Q, kq, lz, sa, sb, out):
 def _lz_update(x, P, Q, kq, lz, idx, val, nnz, nu, r_var, gate_k, test):
     """:func:`lazy_scalar_update` on ``P_now``: ``P_now h^T = Phi (P (Phi^T h^T)) + Qacc h^T -
     sum_k (q_k . h) q_k``; when the buffer is full, P is brought up to date first."""
-    a, b, part, order, meta, qv, qaz, az_pair, az_slot, az_ia, az_ir, qdiag, pend = lz
-    if pend[0] == 0:
+    if lz[12][0] == 0:
         return lazy_scalar_update(x, P, Q, kq, idx, val, nnz, nu, r_var, gate_k, test)
+    a, b, part, order, meta, qv, qaz, az_pair, az_slot, az_ia, az_ir, qdiag, pend = lz
     n = x.shape[0]
     w = np.zeros(n)
     for t in range(nnz):  # w = P Phi^T h^T
@@ -563,7 +566,7 @@ def uwb_batch(x, P, sa, sb, ib, isc, z, r_var, gate_k, nl_frac,
     m = z.shape[0]
     recs = _uwb_records(m)
     Q = np.empty((LAZY_RANK, x.shape[0]))  # deferred rank-1 terms (see lazy_scalar_update)
-    lz = _lz_state(x.shape[0], 0, 0, np.zeros(0, dtype=np.int64), np.zeros(0, dtype=np.int64))
+    lz = _lz_state(0, 0, 0, np.zeros(0, dtype=np.int64), np.zeros(0, dtype=np.int64))  # idle: never read
     n_rec, kq = _uwb_ranges(x, P, Q, 0, lz, 0, m, sa, sb, ib, isc, z, r_var, gate_k, nl_frac,
                             bias_on, bias_lo, bias_hi, scale_on, scale_lo, scale_hi, recs, 0)
     lazy_flush(P, Q, kq)
@@ -596,7 +599,11 @@ def _uwb_ranges(x, P, Q, kq, lz, k0, k1, sa, sb, ib, isc, z, r_var, gate_k, nl_f
         lim = r_var * nl_frac[k]
         _delta(x, sa[k], sb[k], d)
         range_hessian(d, hess)
-        _lz_rel_cov(P, Q, kq, lz, sa[k], sb[k], pd)
+        pending = lz[12][0] != 0  # a deferred prediction (uwb_event_run); else the plain lazy forms
+        if pending:
+            _lz_rel_cov(P, Q, kq, lz, sa[k], sb[k], pd)
+        else:
+            _rel_cov_lazy(P, Q, kq, sa[k], sb[k], pd)
         h2_mean, h2_var = _second_order(hess, pd)
         if not h2_var <= lim:
             rec_kind[n_rec] = REC_UWB
@@ -627,7 +634,10 @@ def _uwb_ranges(x, P, Q, kq, lz, k0, k1, sa, sb, ib, isc, z, r_var, gate_k, nl_f
             val[nnz + 1] = rho
             nnz += 2
         nu = z[k] - h
-        s, st, kq = _lz_update(x, P, Q, kq, lz, idx, val, nnz, nu, r_var + h2_var, gate_k, True)
+        if pending:
+            s, st, kq = _lz_update(x, P, Q, kq, lz, idx, val, nnz, nu, r_var + h2_var, gate_k, True)
+        else:
+            s, st, kq = lazy_scalar_update(x, P, Q, kq, idx, val, nnz, nu, r_var + h2_var, gate_k, True)
         rec_kind[n_rec] = REC_UWB
         rec_meas[n_rec] = k
         rec_nu[n_rec] = nu
@@ -648,7 +658,7 @@ def _uwb_ranges(x, P, Q, kq, lz, k0, k1, sa, sb, ib, isc, z, r_var, gate_k, nl_f
                         continue
                     i, lo, hi = isc[k], scale_lo, scale_hi
                 xi = x[i]
-                pii = _lz_entry(P, Q, kq, lz, i, i)
+                pii = _lz_entry(P, Q, kq, lz, i, i) if lz[12][0] != 0 else _lazy_entry(P, Q, kq, i, i)
                 if xi > hi:
                     zc, rc = lo, pii * (hi - lo) / (xi - hi)
                 elif xi < lo:
@@ -658,7 +668,10 @@ def _uwb_ranges(x, P, Q, kq, lz, k0, k1, sa, sb, ib, isc, z, r_var, gate_k, nl_f
                 idx[0] = i
                 val[0] = 1.0
                 nuc = zc - xi
-                sc, stc, kq = _lz_update(x, P, Q, kq, lz, idx, val, 1, nuc, rc, gate_k, False)
+                if lz[12][0] != 0:
+                    sc, stc, kq = _lz_update(x, P, Q, kq, lz, idx, val, 1, nuc, rc, gate_k, False)
+                else:
+                    sc, stc, kq = lazy_scalar_update(x, P, Q, kq, idx, val, 1, nuc, rc, gate_k, False)
                 rec_kind[n_rec] = REC_CONSTRAINT
                 rec_meas[n_rec] = k
                 rec_nu[n_rec] = nuc
