@@ -16,6 +16,7 @@ import types
 
 import numpy as np
 import pytest
+from scenekit import LinksOnly, crossing_scene
 from scipy import stats
 
 from v2v.errors import UserError
@@ -484,55 +485,6 @@ def test_pair_of_different_radio_types_is_user_error():
 # ------------------------------------------------------------------------------------------
 
 
-def crossing_scene() -> tuple[list[TrafficStep], object]:
-    """A street crossing in a hand-built city, 20 s at 10 Hz, antennas 1.0 m up (below the 1.5 m
-    car roofs, so cars block too); the same scene as tests/test_bearing.py's (repeated so each
-    file stands alone).
-
-    Four corner blocks (10-25 m tall) leave 16 m wide streets along both axes. ``a`` and ``c``
-    (12 m behind) drive east at 4 m/s on y = -2, ``b`` and ``d`` (10 m behind) north at 3 m/s on
-    x = 2: the corner block cuts a/c-b/d links early on (the radios then measure wall
-    reflections), the crossing clears them later. ``c`` leaves for 8 s <= t < 11 s (the vehicle
-    set and its box rows change), and a 6 m truck (3.5 m tall, non-cluster ``background`` box)
-    drives between ``a`` and ``c`` for t < 12 s.
-    A probe that each query sees its own step's boxes: a 4 m van between ``b`` and ``d`` at every
-    other step.
-    """
-    occ = pytest.importorskip("v2v.world.occlusion")
-    from v2v.world.buildings import Building, World
-
-    def block(bid: str, x0: float, x1: float, y0: float, y1: float, h: float) -> Building:
-        fp = np.array([[x0, y0], [x1, y0], [x1, y1], [x0, y1]])
-        return Building(id=bid, footprint_xy_m=fp, height_m=h, height_source="height")
-
-    geom = occ.OcclusionGeometry(World(buildings=(
-        block("NE", 8, 60, 8, 60, 20.0), block("NW", -60, -8, 8, 60, 15.0),
-        block("SW", -60, -8, -60, -8, 25.0), block("SE", 8, 60, -60, -8, 10.0),
-    )))
-    t = np.arange(0.0, 20.0 + 1e-9, 0.1)
-    z = np.zeros_like(t)
-    xy = {"a": np.stack([-50 + 4 * t, z - 2], 1), "c": np.stack([-62 + 4 * t, z - 2], 1),
-          "b": np.stack([z + 2, -50 + 3 * t], 1), "d": np.stack([z + 2, -60 + 3 * t], 1)}
-    steps = []
-    for st in make_steps(t, xy, z_m=1.0):
-        veh = {k: v for k, v in st.vehicles.items() if not (k == "c" and 8.0 <= st.t_s < 11.0)}
-        bg = [[-56 + 4 * st.t_s, -2.0, math.pi / 2, 6.0, 2.5, 3.5]] if st.t_s < 12.0 else []
-        if len(steps) % 2 == 0:
-            bg.append([2.0, -55 + 3 * st.t_s, 0.0, 4.0, 2.5, 3.5])
-        steps.append(TrafficStep(t_s=st.t_s, vehicles=veh, background=np.array(bg).reshape(-1, 6)))
-    return steps, geom
-
-
-class LinksOnly:
-    """The occlusion interface without ``links_many``: the network then asks ``links`` step by step."""
-
-    def __init__(self, geometry):
-        self.geometry = geometry
-
-    def links(self, p0, p1, boxes, exclude):
-        return self.geometry.links(p0, p1, boxes, exclude)
-
-
 @pytest.mark.parametrize(
     "prof",
     [uwb.MSSI, uwb.TDC, only(noise_sigma_m=0.05, rate_hz=5.0, nlos_detection_probability=0.5)],
@@ -547,7 +499,7 @@ def test_batched_occlusion_equals_per_step_links(prof):
     exactly ``links``' answer, tests/test_occlusion.py), so any differing value means an attempt
     was tested against the wrong step's boxes or exclusions.
     """
-    steps, geom = crossing_scene()
+    steps, geom = crossing_scene(make_steps)
     ids = ("a", "b", "c", "d")
     outs = []
     for chunk in (len(steps), 30):

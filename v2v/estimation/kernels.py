@@ -229,6 +229,20 @@ def lazy_scalar_update(x, P, Q, kq, idx, val, nnz, nu, r_var, gate_k, test):
         v = val[a]
         for i in range(n):
             p[i] += row[i] * v
+    s, st = _lazy_apply(x, Q, kq, p, idx, val, nnz, nu, r_var, gate_k, test)
+    if st != ACCEPTED:
+        return s, st, kq
+    if kq == Q.shape[0]:
+        kq = lazy_flush(P, Q, kq)
+    return s, ACCEPTED, _lazy_push(Q, kq, p, s)
+
+
+@njit(**_JIT)
+def _lazy_apply(x, Q, kq, p, idx, val, nnz, nu, r_var, gate_k, test):
+    """The common part of a lazy scalar update given ``p = P h^T`` of the stored covariance:
+    ``p -= sum_k (q_k . h) q_k``, ``S = h p + r``, the checks and the innovation test, then
+    ``x += p nu / S``. Returns ``(S, status)``; the caller buffers ``q = p / sqrt(S)``."""
+    n = x.shape[0]
     for k in range(kq):
         qk = Q[k]
         c = 0.0
@@ -242,22 +256,26 @@ def lazy_scalar_update(x, P, Q, kq, idx, val, nnz, nu, r_var, gate_k, test):
         s += val[a] * p[idx[a]]
     s += r_var
     if not (math.isfinite(nu) and math.isfinite(s) and s > 0.0):
-        return s, NONFINITE, kq
+        return s, NONFINITE
     for i in range(n):
         if not math.isfinite(p[i]):
-            return s, REJECTED, kq
+            return s, REJECTED
     if test and abs(nu) > gate_k * math.sqrt(s):
-        return s, REJECTED, kq
+        return s, REJECTED
     g = nu / s
     for i in range(n):
         x[i] += p[i] * g
-    if kq == Q.shape[0]:
-        kq = lazy_flush(P, Q, kq)
+    return s, ACCEPTED
+
+
+@njit(**_JIT)
+def _lazy_push(Q, kq, p, s):
+    """Buffer ``q = p / sqrt(S)`` as row ``kq`` of Q; returns the new length."""
     c = math.sqrt(1.0 / s)
     qk = Q[kq]
-    for i in range(n):
+    for i in range(p.shape[0]):
         qk[i] = p[i] * c
-    return s, ACCEPTED, kq + 1
+    return kq + 1
 
 
 # ------------------------------------------------------------------ deferred prediction (UWB event runs)
@@ -398,35 +416,12 @@ def _lz_update(x, P, Q, kq, lz, idx, val, nnz, nu, r_var, gate_k, test):
             p[az_ia[k]] += qaz[k, 0, az_slot[i]] * v
             p[az_ir[k]] += qaz[k, 1, az_slot[i]] * v
         p[i] += qdiag[i] * v
-    for k in range(kq):
-        qk = Q[k]
-        c = 0.0
-        for t in range(nnz):
-            c += val[t] * qk[idx[t]]
-        if c != 0.0:
-            for i in range(n):
-                p[i] -= c * qk[i]
-    s = 0.0
-    for t in range(nnz):
-        s += val[t] * p[idx[t]]
-    s += r_var
-    if not (math.isfinite(nu) and math.isfinite(s) and s > 0.0):
-        return s, NONFINITE, kq
-    for i in range(n):
-        if not math.isfinite(p[i]):
-            return s, REJECTED, kq
-    if test and abs(nu) > gate_k * math.sqrt(s):
-        return s, REJECTED, kq
-    g = nu / s
-    for i in range(n):
-        x[i] += p[i] * g
+    s, st = _lazy_apply(x, Q, kq, p, idx, val, nnz, nu, r_var, gate_k, test)
+    if st != ACCEPTED:
+        return s, st, kq
     if kq == Q.shape[0]:
         kq = _lz_materialize(P, Q, kq, lz)
-    c = math.sqrt(1.0 / s)
-    qk = Q[kq]
-    for i in range(n):
-        qk[i] = p[i] * c
-    return s, ACCEPTED, kq + 1
+    return s, ACCEPTED, _lazy_push(Q, kq, p, s)
 
 
 @njit(**_JIT)
