@@ -212,6 +212,9 @@ def _bad_prns(eps: dict[str, GnssEpoch]) -> dict[str, frozenset[int]]:
         bad = ~np.asarray(ep.los, dtype=bool)
         if fault is not None:
             bad = bad | (fault != 0.0)
+        if not bad.any():  # the common case: nothing NLOS or faulted
+            out[v] = frozenset()
+            continue
         _, first = np.unique(ep.prn, return_index=True)
         out[v] = frozenset(int(p) for p in ep.prn[first][bad[first]])
     return out
