@@ -77,6 +77,7 @@ filter, and this one, ignore that.
 
 from __future__ import annotations
 
+import itertools
 import math
 from abc import ABC, abstractmethod
 from collections import deque
@@ -400,6 +401,7 @@ class ClusterFilterBase(ABC):
             if self._vehicle_ready[v] and self._position_sigma_m(v) > self.config.divergence_position_sigma_m:
                 self._reset_vehicle(v)
         per_vehicle: dict[str, tuple[GnssEpoch, NDArray, NDArray, F64]] = {}
+        pr_jobs: list[tuple[str, GnssEpoch, NDArray, NDArray]] = []  # ready vehicles: (v, epoch, iv, il)
         if lead_ep is not None:
             lead_prn = np.asarray(lead_ep.prn, dtype=np.int64)
             lead_pr = np.asarray(lead_ep.pseudorange_m, dtype=np.float64)
@@ -419,15 +421,21 @@ class ClusterFilterBase(ABC):
                 if self._initialize_vehicle(v, geo, ep, lead_ep, iv, il):
                     just_initialized.add(v)
                 continue
-            infos += self._sd_pseudoranges(v, geo, ep, lead_ep, iv, il)
+            pr_jobs.append((v, ep, iv, il))
+        # (an initialization sets a block uncorrelated with the others, and a divergence reset
+        # erases one: neither changes another vehicle's update, so they may come first / last)
+        if pr_jobs and lead_ep is not None:
+            infos += self._sd_pseudoranges_all(geo, lead_ep, pr_jobs)
+        for v, *_ in pr_jobs:
             if self._window_diverged(v):
                 self._reset_vehicle(v)  # re-initialized by the next epoch's snapshot
         if self.config.use_pair_sd:
             infos += self._pair_sds(epochs, lead_ep, geo)
-        if self.config.use_doppler:
-            for v, (ep, iv, il, _) in per_vehicle.items():
-                if self._vehicle_ready[v] and v not in just_initialized:
-                    infos += self._sd_dopplers(v, geo, ep, lead_ep, iv, il)
+        if self.config.use_doppler and lead_ep is not None:
+            jobs = [(v, ep, iv, il) for v, (ep, iv, il, _) in per_vehicle.items()
+                    if self._vehicle_ready[v] and v not in just_initialized]
+            if jobs:
+                infos += self._sd_dopplers_all(geo, lead_ep, jobs)
         code_ok: dict[str, set[int]] = {}
         for info in infos:
             if info.kind == KIND_SD_PR and info.accepted:
@@ -778,6 +786,16 @@ class ClusterFilterBase(ABC):
             if info is not None:
                 out.append(info)
         return out
+
+    def _sd_pseudoranges_all(self, geo: GnssGeometry, lead_ep: GnssEpoch,
+                             jobs: list[tuple[str, GnssEpoch, NDArray, NDArray]]) -> list[UpdateInfo]:
+        """Engine hook: :meth:`_sd_pseudoranges` of every ``(v, epoch, iv, il)`` in order."""
+        return [info for v, ep, iv, il in jobs for info in self._sd_pseudoranges(v, geo, ep, lead_ep, iv, il)]
+
+    def _sd_dopplers_all(self, geo: GnssGeometry, lead_ep: GnssEpoch,
+                         jobs: list[tuple[str, GnssEpoch, NDArray, NDArray]]) -> list[UpdateInfo]:
+        """Engine hook: :meth:`_sd_dopplers` of every ``(v, epoch, iv, il)`` in order."""
+        return [info for v, ep, iv, il in jobs for info in self._sd_dopplers(v, geo, ep, lead_ep, iv, il)]
 
     def _pair_sds(self, epochs: dict[str, GnssEpoch], lead_ep: GnssEpoch | None,
                   geo: GnssGeometry) -> list[UpdateInfo]:
@@ -1180,6 +1198,30 @@ def _c1(a: F64) -> F64:
     return np.ascontiguousarray(a, dtype=np.float64)
 
 
+def _offsets(lengths: list[int]) -> NDArray[np.int64]:
+    """Start offsets of concatenated pieces, with the total last (``len(lengths) + 1`` values)."""
+    return np.array([0, *itertools.accumulate(lengths)], dtype=np.int64)
+
+
+def _cat3(parts: list[F64]) -> F64:
+    """The (m_i, 3) float64 pieces one after another (C-contiguous; one piece: no copy if it is)."""
+    if len(parts) == 1:
+        return _c3(parts[0])
+    return np.concatenate([np.asarray(p, dtype=np.float64).reshape(-1, 3) for p in parts])
+
+
+def _cat1(parts: list[F64]) -> F64:
+    if len(parts) == 1:
+        return _c1(parts[0])
+    return np.concatenate([np.asarray(p, dtype=np.float64).reshape(-1) for p in parts])
+
+
+def _cati(parts: list[NDArray]) -> NDArray[np.int64]:
+    if len(parts) == 1:
+        return np.ascontiguousarray(parts[0], dtype=np.int64)
+    return np.concatenate([np.asarray(p, dtype=np.int64).reshape(-1) for p in parts])
+
+
 class ClusterEkf(ClusterFilterBase):
     """Production engine: sparse rows, O(n) P h^T, symmetric rank-1 covariance update,
     block-wise prediction (each vehicle block shares one cached 8x8 F and Q), all in the
@@ -1372,48 +1414,70 @@ class ClusterEkf(ClusterFilterBase):
                 out.append(info)
         return out
 
-    def _sd_pseudoranges(self, v: str, geo: GnssGeometry, ep: GnssEpoch, lead_ep: GnssEpoch,
-                         iv: NDArray, il: NDArray) -> list[UpdateInfo]:
-        """:meth:`ClusterFilterBase._sd_pseudoranges` in one compiled call
-        (:func:`v2v.estimation.kernels.sd_pseudorange_vehicle`: the satellites gathered, then
-        the same row, clock-jump, screen and batch kernels in the same order); counters, NIS
-        window and records as there."""
+    def _sd_pseudoranges_all(self, geo: GnssGeometry, lead_ep: GnssEpoch,
+                             jobs: list[tuple[str, GnssEpoch, NDArray, NDArray]]) -> list[UpdateInfo]:
+        """:meth:`ClusterFilterBase._sd_pseudoranges` of every vehicle in one compiled call
+        (:func:`v2v.estimation.kernels.sd_pseudorange_vehicles`: per vehicle the same row,
+        clock-jump, screen and batch kernels in the same order, on one shared deferred-update
+        buffer); counters, NIS windows and records as there."""
         cfg = self.config
         lay = self.layout
-        jump, order, isolated, n_flagged, nu, s, st = kernels.sd_pseudorange_vehicle(
-            self._x, self._P, geo.base_ecef_m, geo.rot_ecef_to_enu, self._pos0[v], lay.clock(v),
-            _c3(ep.sv_pos_ecef_m), _c3(lead_ep.sv_pos_ecef_m), _c1(ep.pseudorange_m), _c1(lead_ep.pseudorange_m),
-            iv, il, cfg.noise.sd_pseudorange_var_m2, self._k, cfg.clock_jump_detection, cfg.clock_reset_sigma_m**2)
-        if jump:
-            self._nis_window.pop(v, None)
-            self._count("clock_jump_detected")
-        if n_flagged:
-            self.counters["screened_first_update"] = self.counters.get("screened_first_update", 0) + int(n_flagged)
-        self.integrity_available[v] = bool(isolated)
-        out = self._records(KIND_SD_PR, (v,), order, nu, s, st, ep.prn[iv].tolist())
-        self._record_tests(v, out)
+        row0, moff = _offsets([len(ep.prn) for _, ep, _, _ in jobs]), _offsets([len(iv) for _, _, iv, _ in jobs])
+        jump, isolated, n_flagged, order, nu, s, st = kernels.sd_pseudorange_vehicles(
+            self._x, self._P, geo.base_ecef_m, geo.rot_ecef_to_enu,
+            np.array([self._pos0[v] for v, *_ in jobs], dtype=np.int64),
+            np.array([lay.clock(v) for v, *_ in jobs], dtype=np.int64),
+            _cat3([ep.sv_pos_ecef_m for _, ep, _, _ in jobs]), _cat1([ep.pseudorange_m for _, ep, _, _ in jobs]),
+            row0, _c3(lead_ep.sv_pos_ecef_m), _c1(lead_ep.pseudorange_m),
+            _cati([iv for *_, iv, _ in jobs]), _cati([il for *_, il in jobs]), moff,
+            cfg.noise.sd_pseudorange_var_m2, self._k, cfg.clock_jump_detection, cfg.clock_reset_sigma_m**2)
+        out: list[UpdateInfo] = []
+        for j, (v, ep, iv, _) in enumerate(jobs):
+            if jump[j]:
+                self._nis_window.pop(v, None)
+                self._count("clock_jump_detected")
+            if n_flagged[j]:
+                self.counters["screened_first_update"] = self.counters.get("screened_first_update", 0) + int(n_flagged[j])
+            self.integrity_available[v] = bool(isolated[j])
+            a, b = moff[j], moff[j + 1]
+            recs = self._records(KIND_SD_PR, (v,), order[a:b], nu[a:b], s[a:b], st[a:b], ep.prn[iv].tolist())
+            self._record_tests(v, recs)
+            out += recs
         return out
 
-    def _sd_dopplers(self, v: str, geo: GnssGeometry, ep: GnssEpoch, lead_ep: GnssEpoch,
-                     iv: NDArray, il: NDArray) -> list[UpdateInfo]:
-        """:meth:`ClusterFilterBase._sd_dopplers` in one compiled call
-        (:func:`v2v.estimation.kernels.sd_doppler_vehicle`)."""
-        zd = ep.doppler_mps[iv] - lead_ep.doppler_mps[il]
-        ok = np.isfinite(zd)  # = both Dopplers finite (a difference of finite values is finite)
-        if not ok.all():
-            ok = np.isfinite(ep.doppler_mps[iv]) & np.isfinite(lead_ep.doppler_mps[il])
-            for _ in range(int((~ok).sum())):
-                self._count(f"nonfinite_{KIND_SD_DOPPLER}")
-            iv, il, zd = iv[ok], il[ok], zd[ok]
+    def _sd_dopplers_all(self, geo: GnssGeometry, lead_ep: GnssEpoch,
+                         jobs: list[tuple[str, GnssEpoch, NDArray, NDArray]]) -> list[UpdateInfo]:
+        """:meth:`ClusterFilterBase._sd_dopplers` of every vehicle in one compiled call
+        (:func:`v2v.estimation.kernels.sd_doppler_vehicles`); satellites with a non-finite
+        Doppler are left out (and counted) first, as there."""
+        kept = []
+        for v, ep, iv, il in jobs:
+            zd = ep.doppler_mps[iv] - lead_ep.doppler_mps[il]
+            ok = np.isfinite(zd)  # = both Dopplers finite (a difference of finite values is finite)
+            if not ok.all():
+                ok = np.isfinite(ep.doppler_mps[iv]) & np.isfinite(lead_ep.doppler_mps[il])
+                for _ in range(int((~ok).sum())):
+                    self._count(f"nonfinite_{KIND_SD_DOPPLER}")
+                iv, il, zd = iv[ok], il[ok], zd[ok]
+            kept.append((v, ep, iv, il, zd))
         lay = self.layout
-        order, n_flagged, nu, s, st = kernels.sd_doppler_vehicle(
-            self._x, self._P, geo.base_ecef_m, geo.base_vel_ecef_mps, geo.rot_ecef_to_enu, self._pos0[v],
-            lay.velocity(v).start, lay.drift(v), _c3(ep.sv_pos_ecef_m), _c3(ep.sv_vel_ecef_mps),
-            _c3(lead_ep.sv_pos_ecef_m), _c3(lead_ep.sv_vel_ecef_mps), np.ascontiguousarray(zd, dtype=np.float64),
-            iv, il, self.config.noise.sd_doppler_var_m2ps2, self._k)
-        if n_flagged:
-            self.counters["screened_first_update"] = self.counters.get("screened_first_update", 0) + int(n_flagged)
-        return self._records(KIND_SD_DOPPLER, (v,), order, nu, s, st, ep.prn[iv].tolist())
+        row0, moff = _offsets([len(ep.prn) for _, ep, *_ in kept]), _offsets([len(iv) for _, _, iv, _, _ in kept])
+        n_flagged, order, nu, s, st = kernels.sd_doppler_vehicles(
+            self._x, self._P, geo.base_ecef_m, geo.base_vel_ecef_mps, geo.rot_ecef_to_enu,
+            np.array([self._pos0[v] for v, *_ in kept], dtype=np.int64),
+            np.array([lay.velocity(v).start for v, *_ in kept], dtype=np.int64),
+            np.array([lay.drift(v) for v, *_ in kept], dtype=np.int64),
+            _cat3([ep.sv_pos_ecef_m for _, ep, *_ in kept]), _cat3([ep.sv_vel_ecef_mps for _, ep, *_ in kept]), row0,
+            _c3(lead_ep.sv_pos_ecef_m), _c3(lead_ep.sv_vel_ecef_mps), _cat1([k[4] for k in kept]),
+            _cati([k[2] for k in kept]), _cati([k[3] for k in kept]), moff,
+            self.config.noise.sd_doppler_var_m2ps2, self._k)
+        out: list[UpdateInfo] = []
+        for j, (v, ep, iv, _, _) in enumerate(kept):
+            if n_flagged[j]:
+                self.counters["screened_first_update"] = self.counters.get("screened_first_update", 0) + int(n_flagged[j])
+            a, b = moff[j], moff[j + 1]
+            out += self._records(KIND_SD_DOPPLER, (v,), order[a:b], nu[a:b], s[a:b], st[a:b], ep.prn[iv].tolist())
+        return out
 
     def _records(self, kind: str, vehicles: tuple[str, ...], order: NDArray[np.int64], nu: F64, s: F64,
                  st: NDArray[np.int64], prns: list[int]) -> list[UpdateInfo]:

@@ -796,6 +796,18 @@ def sd_doppler_batch(x, P, base, base_vel, rot, ps, vs, idrift, sv, svv, rate_le
     (nu, S) at the current state and not applied (status EXCLUDED, or NONFINITE).
     Returns ``(nu, s, status)`` indexed like ``order``.
     """
+    Q = np.empty((LAZY_RANK, x.shape[0]))  # deferred rank-1 terms (see lazy_scalar_update)
+    nu, s, st, kq = _sd_doppler_batch_q(x, P, Q, 0, base, base_vel, rot, ps, vs, idrift, sv, svv, rate_lead, z,
+                                        order, excluded, r_var, gate_k)
+    lazy_flush(P, Q, kq)
+    return nu, s, st
+
+
+@njit(**_JIT)
+def _sd_doppler_batch_q(x, P, Q, kq, base, base_vel, rot, ps, vs, idrift, sv, svv, rate_lead, z, order, excluded,
+                        r_var, gate_k):
+    """:func:`sd_doppler_batch` on the lazily updated ``P - Q[:kq]^T Q[:kq]``, not flushed:
+    returns ``(nu, s, status, kq)``."""
     m = order.shape[0]
     out_nu = np.zeros(m)
     out_s = np.zeros(m)
@@ -811,8 +823,6 @@ def sd_doppler_batch(x, P, base, base_vel, rot, ps, vs, idrift, sv, svv, rate_le
         idx[3 + i] = vs + i
     idx[6] = idrift
     val = np.empty(7)
-    Q = np.empty((LAZY_RANK, x.shape[0]))  # deferred rank-1 terms (see lazy_scalar_update)
-    kq = 0
     for k in range(m):
         o = order[k]
         _abs3(base, rot, x, ps, r_v)
@@ -833,8 +843,7 @@ def sd_doppler_batch(x, P, base, base_vel, rot, ps, vs, idrift, sv, svv, rate_le
         nu = z[o] - h
         s, st, kq = _update_or_exclude(x, P, Q, kq, idx, val, 7, nu, r_var, gate_k, excluded[o])
         out_nu[k], out_s[k], out_st[k] = nu, s, st
-    kq = lazy_flush(P, Q, kq)
-    return out_nu, out_s, out_st
+    return out_nu, out_s, out_st, kq
 
 
 @njit(**_JIT)
@@ -845,6 +854,17 @@ def sd_pseudorange_batch(x, P, base, rot, ps, iclk, sv, rho_lead, z, order, excl
     ``(-R u, 1)`` on (position, clock). ``excluded`` as in :func:`sd_doppler_batch`.
     Returns ``(nu, s, status)`` indexed like ``order``.
     """
+    Q = np.empty((LAZY_RANK, x.shape[0]))  # deferred rank-1 terms (see lazy_scalar_update)
+    nu, s, st, kq = _sd_pseudorange_batch_q(x, P, Q, 0, base, rot, ps, iclk, sv, rho_lead, z, order, excluded,
+                                            r_var, gate_k)
+    lazy_flush(P, Q, kq)
+    return nu, s, st
+
+
+@njit(**_JIT)
+def _sd_pseudorange_batch_q(x, P, Q, kq, base, rot, ps, iclk, sv, rho_lead, z, order, excluded, r_var, gate_k):
+    """:func:`sd_pseudorange_batch` on the lazily updated ``P - Q[:kq]^T Q[:kq]``, not
+    flushed: returns ``(nu, s, status, kq)``."""
     m = order.shape[0]
     out_nu = np.zeros(m)
     out_s = np.zeros(m)
@@ -855,8 +875,6 @@ def sd_pseudorange_batch(x, P, base, rot, ps, iclk, sv, rho_lead, z, order, excl
         idx[i] = ps + i
     idx[3] = iclk
     val = np.empty(4)
-    Q = np.empty((LAZY_RANK, x.shape[0]))  # deferred rank-1 terms (see lazy_scalar_update)
-    kq = 0
     for k in range(m):
         o = order[k]
         _abs3(base, rot, x, ps, r_v)
@@ -870,8 +888,7 @@ def sd_pseudorange_batch(x, P, base, rot, ps, iclk, sv, rho_lead, z, order, excl
         nu = z[o] - h
         s, st, kq = _update_or_exclude(x, P, Q, kq, idx, val, 4, nu, r_var, gate_k, excluded[o])
         out_nu[k], out_s[k], out_st[k] = nu, s, st
-    kq = lazy_flush(P, Q, kq)
-    return out_nu, out_s, out_st
+    return out_nu, out_s, out_st, kq
 
 
 @njit(**_JIT)
@@ -1281,6 +1298,12 @@ def clock_jump_test(P, idx, h_pred, val, z, r_var, k):
     ``S_i = h_i P h_i^T + r``; a jump when more than half fail ``|nu| <= k sqrt(S)``, all of
     those with one sign, and a majority pass ``|nu - median(nu)| <= k sqrt(S)``.
     Returns ``(jump, median(nu))``."""
+    return _clock_jump_test_q(P, np.empty((1, 1)), 0, idx, h_pred, val, z, r_var, k)
+
+
+@njit(**_JIT)
+def _clock_jump_test_q(P, Q, kq, idx, h_pred, val, z, r_var, k):
+    """:func:`clock_jump_test` on the lazily updated ``P - Q[:kq]^T Q[:kq]``."""
     n = h_pred.shape[0]
     if n < 3:
         return False, 0.0
@@ -1296,7 +1319,7 @@ def clock_jump_test(P, idx, h_pred, val, z, r_var, k):
         for a in range(nnz):
             t = 0.0
             for b in range(nnz):
-                t += P[idx[a], idx[b]] * val[i, b]
+                t += _lazy_entry(P, Q, kq, idx[a], idx[b]) * val[i, b]
             s += val[i, a] * t
         gate[i] = k * math.sqrt(s + r_var)
         if abs(nu[i]) > gate[i]:
@@ -1448,6 +1471,18 @@ def sd_pseudorange_epoch(x, P, base, rot, ps, iclk, sv, rho_lead, z, r_var, gate
 
     Returns ``(jump, order, isolated, n_flagged, nu, s, status)``.
     """
+    Q = np.empty((LAZY_RANK, x.shape[0]))
+    jump, order, isolated, n_flag, nu, s, st, kq = _sd_pseudorange_epoch_q(
+        x, P, Q, 0, base, rot, ps, iclk, sv, rho_lead, z, r_var, gate_k, detect_jump, reset_var)
+    lazy_flush(P, Q, kq)
+    return jump, order, isolated, n_flag, nu, s, st
+
+
+@njit(**_JIT)
+def _sd_pseudorange_epoch_q(x, P, Q, kq, base, rot, ps, iclk, sv, rho_lead, z, r_var, gate_k, detect_jump,
+                            reset_var):
+    """:func:`sd_pseudorange_epoch` on the lazily updated ``P - Q[:kq]^T Q[:kq]`` (a clock
+    reset also clears the clock's column of Q, so the reset entries are exact); not flushed."""
     h, val = sd_pseudorange_rows(x, base, rot, ps, iclk, sv, rho_lead, x[iclk])
     jump = False
     if detect_jump:
@@ -1455,13 +1490,16 @@ def sd_pseudorange_epoch(x, P, base, rot, ps, iclk, sv, rho_lead, z, r_var, gate
         for i in range(3):
             idx[i] = ps + i
         idx[3] = iclk
-        jump, med = clock_jump_test(P, idx, h, val, z, r_var, gate_k)
+        jump, med = _clock_jump_test_q(P, Q, kq, idx, h, val, z, r_var, gate_k)
         if jump:
+            for r in range(kq):
+                Q[r, iclk] = 0.0
             _set_block1(x, P, iclk, x[iclk] + med, reset_var)
             h, val = sd_pseudorange_rows(x, base, rot, ps, iclk, sv, rho_lead, x[iclk])
     order, excluded, isolated, n_flag = first_unflagged_order(h, val, z, math.sqrt(r_var), gate_k, 4)
-    nu, s, st = sd_pseudorange_batch(x, P, base, rot, ps, iclk, sv, rho_lead, z, order, excluded, r_var, gate_k)
-    return jump, order, isolated, n_flag, nu, s, st
+    nu, s, st, kq = _sd_pseudorange_batch_q(x, P, Q, kq, base, rot, ps, iclk, sv, rho_lead, z, order, excluded,
+                                            r_var, gate_k)
+    return jump, order, isolated, n_flag, nu, s, st, kq
 
 
 @njit(**_JIT)
@@ -1470,43 +1508,111 @@ def sd_doppler_epoch(x, P, base, base_vel, rot, ps, vs, idrift, sv, svv, rate_le
     (:func:`sd_doppler_rows`), screen on (velocity, drift) and order
     (:func:`first_unflagged_order`), updates (:func:`sd_doppler_batch`), as
     ``ClusterFilterBase._sd_dopplers``. Returns ``(order, n_flagged, nu, s, status)``."""
-    h, val = sd_doppler_rows(x, base, base_vel, rot, ps, vs, idrift, sv, svv, rate_lead)
-    order, excluded, isolated, n_flag = first_unflagged_order(h, val, z, math.sqrt(r_var), gate_k, 4)
-    nu, s, st = sd_doppler_batch(x, P, base, base_vel, rot, ps, vs, idrift, sv, svv, rate_lead, z, order, excluded,
-                                 r_var, gate_k)
+    Q = np.empty((LAZY_RANK, x.shape[0]))
+    order, n_flag, nu, s, st, kq = _sd_doppler_epoch_q(x, P, Q, 0, base, base_vel, rot, ps, vs, idrift, sv, svv,
+                                                       rate_lead, z, r_var, gate_k)
+    lazy_flush(P, Q, kq)
     return order, n_flag, nu, s, st
 
 
 @njit(**_JIT)
-def _gather3(a, idx):
-    out = np.empty((idx.shape[0], 3))
-    for i in range(idx.shape[0]):
-        for c in range(3):
-            out[i, c] = a[idx[i], c]
-    return out
+def _sd_doppler_epoch_q(x, P, Q, kq, base, base_vel, rot, ps, vs, idrift, sv, svv, rate_lead, z, r_var, gate_k):
+    """:func:`sd_doppler_epoch` on the lazily updated ``P - Q[:kq]^T Q[:kq]``; not flushed."""
+    h, val = sd_doppler_rows(x, base, base_vel, rot, ps, vs, idrift, sv, svv, rate_lead)
+    order, excluded, isolated, n_flag = first_unflagged_order(h, val, z, math.sqrt(r_var), gate_k, 4)
+    nu, s, st, kq = _sd_doppler_batch_q(x, P, Q, kq, base, base_vel, rot, ps, vs, idrift, sv, svv, rate_lead, z,
+                                        order, excluded, r_var, gate_k)
+    return order, n_flag, nu, s, st, kq
 
 
 @njit(**_JIT)
-def sd_pseudorange_vehicle(x, P, base, rot, ps, iclk, sv_v, sv_lead, pr_v, pr_lead, iv, il, r_var, gate_k,
-                           detect_jump, reset_var):
-    """:func:`sd_pseudorange_epoch` of vehicle ``v`` from the two receivers' whole epochs:
-    satellite positions ``sv_v[iv]``, the lead's ranges ``|sv_lead[il] - base|``
-    (:func:`ranges_from`) and ``z = pr_v[iv] - pr_lead[il]`` gathered here (the arithmetic of
-    ``models.SdPseudorangeRows`` and the filter's ``z``)."""
-    sv = _gather3(sv_v, iv)
-    rho_lead = ranges_from(base, _gather3(sv_lead, il))
-    z = np.empty(iv.shape[0])
-    for i in range(iv.shape[0]):
-        z[i] = pr_v[iv[i]] - pr_lead[il[i]]
-    return sd_pseudorange_epoch(x, P, base, rot, ps, iclk, sv, rho_lead, z, r_var, gate_k, detect_jump, reset_var)
+def sd_pseudorange_vehicles(x, P, base, rot, ps, iclk, sv_cat, pr_cat, row0, sv_lead, pr_lead, iv_cat, il_cat, moff,
+                            r_var, gate_k, detect_jump, reset_var):
+    """Every vehicle's SD pseudorange epoch (:func:`sd_pseudorange_epoch`, one after another)
+    in one call, on one deferred-update buffer shared by all of them (P brought up to date
+    once per LAZY_RANK updates and at the end, not once per vehicle).
+
+    Vehicle ``j``: position-slice start ``ps[j]``, clock index ``iclk[j]``; its receiver's
+    satellites are rows ``row0[j]:`` of ``sv_cat`` / ``pr_cat``; its common satellites with
+    the lead are ``iv_cat[moff[j]:moff[j+1]]`` (indices into its rows) and ``il_cat[...]``
+    (into the lead's ``sv_lead`` / ``pr_lead``), gathered with the arithmetic of
+    ``models.SdPseudorangeRows``. Returns per vehicle ``(jump, isolated, n_flagged)`` and per measurement (``moff``
+    slices) ``(order, nu, s, status)``, ``order`` local to the vehicle.
+    """
+    nv = ps.shape[0]
+    m = iv_cat.shape[0]
+    jump = np.zeros(nv, dtype=np.bool_)
+    isolated = np.zeros(nv, dtype=np.bool_)
+    n_flag = np.zeros(nv, dtype=np.int64)
+    order = np.zeros(m, dtype=np.int64)
+    nu = np.zeros(m)
+    s = np.zeros(m)
+    st = np.zeros(m, dtype=np.int64)
+    Q = np.empty((LAZY_RANK, x.shape[0]))
+    kq = 0
+    for j in range(nv):
+        a, b = moff[j], moff[j + 1]
+        k = b - a
+        sv = np.empty((k, 3))
+        svl = np.empty((k, 3))
+        z = np.empty(k)
+        for i in range(k):
+            rv = row0[j] + iv_cat[a + i]
+            rl = il_cat[a + i]
+            for c in range(3):
+                sv[i, c] = sv_cat[rv, c]
+                svl[i, c] = sv_lead[rl, c]
+            z[i] = pr_cat[rv] - pr_lead[rl]
+        rho_lead = ranges_from(base, svl)
+        jp, o, iso, nf, nu_j, s_j, st_j, kq = _sd_pseudorange_epoch_q(
+            x, P, Q, kq, base, rot, ps[j], iclk[j], sv, rho_lead, z, r_var, gate_k, detect_jump, reset_var)
+        jump[j], isolated[j], n_flag[j] = jp, iso, nf
+        order[a:b] = o
+        nu[a:b] = nu_j
+        s[a:b] = s_j
+        st[a:b] = st_j
+    lazy_flush(P, Q, kq)
+    return jump, isolated, n_flag, order, nu, s, st
 
 
 @njit(**_JIT)
-def sd_doppler_vehicle(x, P, base, base_vel, rot, ps, vs, idrift, sv_v, svv_v, sv_lead, svv_lead, z, iv, il,
-                       r_var, gate_k):
-    """:func:`sd_doppler_epoch` of vehicle ``v`` from the two receivers' whole epochs
-    (satellite states gathered at ``iv`` / ``il``, the lead's range rates
-    :func:`range_rates_from` at the base: the arithmetic of ``models.SdDopplerRows``)."""
-    rate_lead = range_rates_from(base, base_vel, _gather3(sv_lead, il), _gather3(svv_lead, il))
-    return sd_doppler_epoch(x, P, base, base_vel, rot, ps, vs, idrift, _gather3(sv_v, iv), _gather3(svv_v, iv),
-                            rate_lead, z, r_var, gate_k)
+def sd_doppler_vehicles(x, P, base, base_vel, rot, ps, vs, idrift, sv_cat, svv_cat, row0, sv_lead, svv_lead, z_cat,
+                        iv_cat, il_cat, moff, r_var, gate_k):
+    """Every vehicle's SD Doppler epoch (:func:`sd_doppler_epoch`) in one call on one shared
+    deferred-update buffer (as :func:`sd_pseudorange_vehicles`; ``z_cat`` the SD Dopplers,
+    sliced like ``iv_cat``). Returns per vehicle ``n_flagged`` and per measurement
+    ``(order, nu, s, status)``."""
+    nv = ps.shape[0]
+    m = iv_cat.shape[0]
+    n_flag = np.zeros(nv, dtype=np.int64)
+    order = np.zeros(m, dtype=np.int64)
+    nu = np.zeros(m)
+    s = np.zeros(m)
+    st = np.zeros(m, dtype=np.int64)
+    Q = np.empty((LAZY_RANK, x.shape[0]))
+    kq = 0
+    for j in range(nv):
+        a, b = moff[j], moff[j + 1]
+        k = b - a
+        sv = np.empty((k, 3))
+        svv = np.empty((k, 3))
+        svl = np.empty((k, 3))
+        svvl = np.empty((k, 3))
+        for i in range(k):
+            rv = row0[j] + iv_cat[a + i]
+            rl = il_cat[a + i]
+            for c in range(3):
+                sv[i, c] = sv_cat[rv, c]
+                svv[i, c] = svv_cat[rv, c]
+                svl[i, c] = sv_lead[rl, c]
+                svvl[i, c] = svv_lead[rl, c]
+        rate_lead = range_rates_from(base, base_vel, svl, svvl)
+        o, nf, nu_j, s_j, st_j, kq = _sd_doppler_epoch_q(x, P, Q, kq, base, base_vel, rot, ps[j], vs[j], idrift[j], sv,
+                                                         svv, rate_lead, z_cat[a:b].copy(), r_var, gate_k)
+        n_flag[j] = nf
+        order[a:b] = o
+        nu[a:b] = nu_j
+        s[a:b] = s_j
+        st[a:b] = st_j
+    lazy_flush(P, Q, kq)
+    return n_flag, order, nu, s, st
