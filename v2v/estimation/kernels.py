@@ -1526,6 +1526,32 @@ def _sd_doppler_epoch_q(x, P, Q, kq, base, base_vel, rot, ps, vs, idrift, sv, sv
 
 
 @njit(**_JIT)
+def _gather_rows(src, row0, iv, a, b):
+    """Rows ``row0 + iv[a:b]`` of an (r, 3) array, as a new (b - a, 3) array."""
+    out = np.empty((b - a, 3))
+    for i in range(b - a):
+        r = row0 + iv[a + i]
+        for c in range(3):
+            out[i, c] = src[r, c]
+    return out
+
+
+@njit(**_JIT)
+def _meas_outputs(m):
+    """(order, nu, S, status) arrays for ``m`` measurements."""
+    return np.zeros(m, dtype=np.int64), np.zeros(m), np.zeros(m), np.zeros(m, dtype=np.int64)
+
+
+@njit(**_JIT)
+def _store(order, nu, s, st, a, b, o, nu_j, s_j, st_j):
+    """One vehicle's per-measurement outputs into the slices ``a:b`` of the concatenated ones."""
+    order[a:b] = o
+    nu[a:b] = nu_j
+    s[a:b] = s_j
+    st[a:b] = st_j
+
+
+@njit(**_JIT)
 def sd_pseudorange_vehicles(x, P, base, rot, ps, iclk, sv_cat, pr_cat, row0, sv_lead, pr_lead, iv_cat, il_cat, moff,
                             r_var, gate_k, detect_jump, reset_var):
     """Every vehicle's SD pseudorange epoch (:func:`sd_pseudorange_epoch`, one after another)
@@ -1544,33 +1570,20 @@ def sd_pseudorange_vehicles(x, P, base, rot, ps, iclk, sv_cat, pr_cat, row0, sv_
     jump = np.zeros(nv, dtype=np.bool_)
     isolated = np.zeros(nv, dtype=np.bool_)
     n_flag = np.zeros(nv, dtype=np.int64)
-    order = np.zeros(m, dtype=np.int64)
-    nu = np.zeros(m)
-    s = np.zeros(m)
-    st = np.zeros(m, dtype=np.int64)
+    order, nu, s, st = _meas_outputs(m)
     Q = np.empty((LAZY_RANK, x.shape[0]))
     kq = 0
     for j in range(nv):
         a, b = moff[j], moff[j + 1]
-        k = b - a
-        sv = np.empty((k, 3))
-        svl = np.empty((k, 3))
-        z = np.empty(k)
-        for i in range(k):
-            rv = row0[j] + iv_cat[a + i]
-            rl = il_cat[a + i]
-            for c in range(3):
-                sv[i, c] = sv_cat[rv, c]
-                svl[i, c] = sv_lead[rl, c]
-            z[i] = pr_cat[rv] - pr_lead[rl]
-        rho_lead = ranges_from(base, svl)
+        z = np.empty(b - a)
+        for i in range(b - a):
+            z[i] = pr_cat[row0[j] + iv_cat[a + i]] - pr_lead[il_cat[a + i]]
+        rho_lead = ranges_from(base, _gather_rows(sv_lead, 0, il_cat, a, b))
         jp, o, iso, nf, nu_j, s_j, st_j, kq = _sd_pseudorange_epoch_q(
-            x, P, Q, kq, base, rot, ps[j], iclk[j], sv, rho_lead, z, r_var, gate_k, detect_jump, reset_var)
+            x, P, Q, kq, base, rot, ps[j], iclk[j], _gather_rows(sv_cat, row0[j], iv_cat, a, b), rho_lead, z, r_var,
+            gate_k, detect_jump, reset_var)
         jump[j], isolated[j], n_flag[j] = jp, iso, nf
-        order[a:b] = o
-        nu[a:b] = nu_j
-        s[a:b] = s_j
-        st[a:b] = st_j
+        _store(order, nu, s, st, a, b, o, nu_j, s_j, st_j)
     lazy_flush(P, Q, kq)
     return jump, isolated, n_flag, order, nu, s, st
 
@@ -1585,34 +1598,17 @@ def sd_doppler_vehicles(x, P, base, base_vel, rot, ps, vs, idrift, sv_cat, svv_c
     nv = ps.shape[0]
     m = iv_cat.shape[0]
     n_flag = np.zeros(nv, dtype=np.int64)
-    order = np.zeros(m, dtype=np.int64)
-    nu = np.zeros(m)
-    s = np.zeros(m)
-    st = np.zeros(m, dtype=np.int64)
+    order, nu, s, st = _meas_outputs(m)
     Q = np.empty((LAZY_RANK, x.shape[0]))
     kq = 0
     for j in range(nv):
         a, b = moff[j], moff[j + 1]
-        k = b - a
-        sv = np.empty((k, 3))
-        svv = np.empty((k, 3))
-        svl = np.empty((k, 3))
-        svvl = np.empty((k, 3))
-        for i in range(k):
-            rv = row0[j] + iv_cat[a + i]
-            rl = il_cat[a + i]
-            for c in range(3):
-                sv[i, c] = sv_cat[rv, c]
-                svv[i, c] = svv_cat[rv, c]
-                svl[i, c] = sv_lead[rl, c]
-                svvl[i, c] = svv_lead[rl, c]
-        rate_lead = range_rates_from(base, base_vel, svl, svvl)
-        o, nf, nu_j, s_j, st_j, kq = _sd_doppler_epoch_q(x, P, Q, kq, base, base_vel, rot, ps[j], vs[j], idrift[j], sv,
-                                                         svv, rate_lead, z_cat[a:b].copy(), r_var, gate_k)
+        rate_lead = range_rates_from(base, base_vel, _gather_rows(sv_lead, 0, il_cat, a, b),
+                                     _gather_rows(svv_lead, 0, il_cat, a, b))
+        o, nf, nu_j, s_j, st_j, kq = _sd_doppler_epoch_q(
+            x, P, Q, kq, base, base_vel, rot, ps[j], vs[j], idrift[j], _gather_rows(sv_cat, row0[j], iv_cat, a, b),
+            _gather_rows(svv_cat, row0[j], iv_cat, a, b), rate_lead, z_cat[a:b].copy(), r_var, gate_k)
         n_flag[j] = nf
-        order[a:b] = o
-        nu[a:b] = nu_j
-        s[a:b] = s_j
-        st[a:b] = st_j
+        _store(order, nu, s, st, a, b, o, nu_j, s_j, st_j)
     lazy_flush(P, Q, kq)
     return n_flag, order, nu, s, st
