@@ -81,20 +81,9 @@ def scalar_update(x, P, idx, val, nnz, nu, r_var, gate_k, test):
         v = val[k]
         for i in range(n):
             p[i] += row[i] * v
-    s = 0.0
-    for k in range(nnz):
-        s += val[k] * p[idx[k]]
-    s += r_var
-    if not (math.isfinite(nu) and math.isfinite(s) and s > 0.0):
-        return s, NONFINITE
-    for i in range(n):
-        if not math.isfinite(p[i]):
-            return s, REJECTED
-    if test and abs(nu) > gate_k * math.sqrt(s):
-        return s, REJECTED
-    g = nu / s
-    for i in range(n):
-        x[i] += p[i] * g
+    s, st = _lazy_apply(x, P[:0], 0, p, idx, val, nnz, nu, r_var, gate_k, test)  # no buffered terms
+    if st != ACCEPTED:
+        return s, st
     c = math.sqrt(1.0 / s)
     for i in range(n):
         p[i] *= c
