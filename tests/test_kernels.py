@@ -238,6 +238,15 @@ def _gnss_geometry(rng):
     return rot, base, sv, svv
 
 
+def _flushed(batch, x, P, *args):
+    """A GNSS batch kernel with a fresh deferred-update buffer, applied to P afterwards
+    (the filter shares one buffer across vehicles and applies it once per epoch)."""
+    Q = np.empty((kernels.LAZY_RANK, x.shape[0]))
+    *out, kq = batch(x, P, Q, 0, *args)
+    kernels.lazy_flush(P, Q, kq)
+    return out
+
+
 def test_sd_pseudorange_batch_matches_textbook_with_fd_jacobian():
     """h = |sv - (base + R^T p)| - rho_lead + clk (MacGougan (2009) eq. 3.2-3.3)."""
     rng = np.random.default_rng(21)
@@ -252,8 +261,8 @@ def test_sd_pseudorange_batch_matches_textbook_with_fd_jacobian():
     z = np.array([f(x) + 1.0, 0, 0, 0])
     # the range is ~2e7 m: round-off eps * 2e7 / h needs a step of ~1 cm (truncation ~h^2 / rho^2: nil)
     x_exp, p_exp, s_exp = _textbook(x, P, _fd_jac(f, x, step=1e-3), 1.0, 50.0)
-    nu, s, st = kernels.sd_pseudorange_batch(x, P, base, rot, 0, 6, sv, rho_lead, z, np.array([0]),
-                                             np.zeros(4, dtype=bool), 50.0, GATE)
+    nu, s, st = _flushed(kernels.sd_pseudorange_batch, x, P, base, rot, 0, 6, sv, rho_lead, z, np.array([0]),
+                         np.zeros(4, dtype=bool), 50.0, GATE)
     assert st[0] == kernels.ACCEPTED and nu[0] == pytest.approx(1.0, rel=1e-6) and s[0] == pytest.approx(s_exp)
     _assert_update_close(x, P, x_exp, p_exp)
 
@@ -275,8 +284,8 @@ def test_sd_doppler_batch_matches_textbook_with_fd_jacobian():
 
     z = np.array([f(x) + 0.05, 0, 0, 0])
     x_exp, p_exp, s_exp = _textbook(x, P, _fd_jac(f, x, step=1e-3), 0.05, 0.02)
-    nu, s, st = kernels.sd_doppler_batch(x, P, base, base_vel, rot, 0, 3, 7, sv, svv, rate_lead, z, np.array([0]),
-                                         np.zeros(4, dtype=bool), 0.02, GATE)
+    nu, s, st = _flushed(kernels.sd_doppler_batch, x, P, base, base_vel, rot, 0, 3, 7, sv, svv, rate_lead, z,
+                         np.array([0]), np.zeros(4, dtype=bool), 0.02, GATE)
     assert st[0] == kernels.ACCEPTED and nu[0] == pytest.approx(0.05, rel=1e-6) and s[0] == pytest.approx(s_exp)
     _assert_update_close(x, P, x_exp, p_exp)
 
@@ -382,8 +391,8 @@ def test_sd_pseudorange_batch_equals_sequential_textbook_updates(with_rejection)
         if abs(nu) > GATE * math.sqrt(s):
             continue
         xe, pe, _ = _textbook(xe, pe, hrow, nu, r_var)
-    _, _, st = kernels.sd_pseudorange_batch(x, P, base, rot, 0, 3, sv, rho_lead, z, np.arange(9),
-                                            np.zeros(9, dtype=bool), r_var, GATE)
+    _, _, st = _flushed(kernels.sd_pseudorange_batch, x, P, base, rot, 0, 3, sv, rho_lead, z, np.arange(9),
+                        np.zeros(9, dtype=bool), r_var, GATE)
     assert (st == kernels.REJECTED).sum() == (1 if with_rejection else 0)
     if with_rejection:
         assert st[4] == kernels.REJECTED

@@ -281,8 +281,9 @@ class ClusterFilterBase(ABC):
 
     Engines implement: ``_predict_core(dt)``, ``_apply(row, z, r_var, wrap, test)``,
     ``_set_block(s, mean, cov)``, ``_get_x()``, ``_get_P()``, ``_replace(x, P)``; and may
-    replace the per-measurement Python sequences ``_uwb_sequence``, ``_bearing_sequence``,
-    ``_doppler_sequence``, ``_pseudorange_sequence`` (one call per batch, same records).
+    replace the per-measurement Python sequences ``_uwb_sequence``, ``_bearing_sequence``
+    (one call per batch, same records), ``update_uwb_events`` and the per-epoch GNSS hooks
+    ``_sd_pseudoranges_all``, ``_sd_dopplers_all`` (all vehicles in one call).
     """
 
     def __init__(self, layout: StateLayout, config: FilterConfig | None = None):
@@ -1225,9 +1226,9 @@ def _cati(parts: list[NDArray]) -> NDArray[np.int64]:
 class ClusterEkf(ClusterFilterBase):
     """Production engine: sparse rows, O(n) P h^T, symmetric rank-1 covariance update,
     block-wise prediction (each vehicle block shares one cached 8x8 F and Q), all in the
-    compiled kernels of :mod:`v2v.estimation.kernels`: every UWB, bearing and SD Doppler
-    batch (and SD pseudorange batch, through :meth:`_pseudorange_sequence`) runs in one
-    kernel call that re-linearizes each measurement at the current state.
+    compiled kernels of :mod:`v2v.estimation.kernels`: every UWB and bearing batch, and all
+    vehicles' SD pseudoranges and Dopplers of an epoch, run in one kernel call each that
+    re-linearizes each measurement at the current state.
 
     Example
     -------
@@ -1381,35 +1382,6 @@ class ClusterEkf(ClusterFilterBase):
         out = []
         for k, (nuk, sk, stk) in enumerate(zip(nu.tolist(), s.tolist(), st.tolist(), strict=True)):
             info = self._record(KIND_BEARING, (a_list[k], b_list[k]), nuk, sk, stk, -1, "bearing_deferred_nonlinear")
-            if info is not None:
-                out.append(info)
-        return out
-
-    def _doppler_sequence(self, v: str, rows: models.SdDopplerRows, z: F64, order: NDArray[np.int64],
-                          excluded: NDArray[np.bool_], prns: NDArray, r_var: float) -> list[UpdateInfo]:
-        """One vehicle's SD Dopplers in one :func:`v2v.estimation.kernels.sd_doppler_batch` call."""
-        order = np.ascontiguousarray(order, dtype=np.int64)
-        nu, s, st = kernels.sd_doppler_batch(self._x, self._P, *rows.kernel_args(), np.ascontiguousarray(z, dtype=float),
-                                             order, np.ascontiguousarray(excluded, dtype=np.bool_), r_var, self._k)
-        prn_l = prns.tolist()
-        out = []
-        for o, nuk, sk, stk in zip(order.tolist(), nu.tolist(), s.tolist(), st.tolist(), strict=True):
-            info = self._record(KIND_SD_DOPPLER, (v,), nuk, sk, stk, prn_l[o], "")
-            if info is not None:
-                out.append(info)
-        return out
-
-    def _pseudorange_sequence(self, v: str, rows: models.SdPseudorangeRows, z: F64, order: NDArray[np.int64],
-                              excluded: NDArray[np.bool_], prns: NDArray, r_var: float) -> list[UpdateInfo]:
-        """One vehicle's SD pseudoranges in one :func:`v2v.estimation.kernels.sd_pseudorange_batch` call."""
-        order = np.ascontiguousarray(order, dtype=np.int64)
-        nu, s, st = kernels.sd_pseudorange_batch(self._x, self._P, *rows.kernel_args(),
-                                                 np.ascontiguousarray(z, dtype=float), order,
-                                                 np.ascontiguousarray(excluded, dtype=np.bool_), r_var, self._k)
-        prn_l = prns.tolist()
-        out = []
-        for o, nuk, sk, stk in zip(order.tolist(), nu.tolist(), s.tolist(), st.tolist(), strict=True):
-            info = self._record(KIND_SD_PR, (v,), nuk, sk, stk, prn_l[o], "")
             if info is not None:
                 out.append(info)
         return out

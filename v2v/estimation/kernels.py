@@ -19,7 +19,8 @@ batch of one measurement type in one call, with exactly the filter's rules:
 * :func:`bearing_batch`: ``atan2(dE, dN) - alpha`` (Petovello et al. eq. 5-6) with a known
   (reported) or estimated azimuth, initialized at its first bearing.
 * :func:`sd_doppler_batch`, :func:`sd_pseudorange_batch`: one vehicle's SD Dopplers /
-  pseudoranges in the given order, with the screen's exclusions (thesis eq. 3.2-3.3).
+  pseudoranges in the given order, with the screen's exclusions (thesis eq. 3.2-3.3); all
+  vehicles of an epoch in one call: :func:`sd_pseudorange_vehicles`, :func:`sd_doppler_vehicles`.
 
 Inside a batch the covariance updates are deferred (:func:`lazy_scalar_update`): the
 rank-1 terms are buffered and applied ``LAZY_RANK`` at a time as one BLAS-3 product, which
@@ -775,28 +776,17 @@ def _update_or_exclude(x, P, Q, kq, idx, val, nnz, nu, r_var, gate_k, excluded):
 
 
 @njit(**_JIT)
-def sd_doppler_batch(x, P, base, base_vel, rot, ps, vs, idrift, sv, svv, rate_lead, z, order, excluded,
+def sd_doppler_batch(x, P, Q, kq, base, base_vel, rot, ps, vs, idrift, sv, svv, rate_lead, z, order, excluded,
                      r_var, gate_k):
     """One vehicle's SD pseudorange-rate updates in ``order`` (models.SdDopplerRows.row).
 
     ``h = u . (vsv - v) - rate_lead + drift`` with ``v = base_vel + R^T dv``; Jacobian
     d/d p = R (-(dv - u rate) / rho), d/d dv = -R u, d/d drift = 1 (``ps``, ``vs``: position
     and velocity slice starts, ``idrift``: drift index). ``excluded[o]``: reported with
-    (nu, S) at the current state and not applied (status EXCLUDED, or NONFINITE).
-    Returns ``(nu, s, status)`` indexed like ``order``.
+    (nu, S) at the current state and not applied (status EXCLUDED, or NONFINITE). On the
+    lazily updated ``P - Q[:kq]^T Q[:kq]`` (:func:`lazy_scalar_update`), not flushed.
+    Returns ``(nu, s, status, kq)``, the first three indexed like ``order``.
     """
-    Q = np.empty((LAZY_RANK, x.shape[0]))  # deferred rank-1 terms (see lazy_scalar_update)
-    nu, s, st, kq = _sd_doppler_batch_q(x, P, Q, 0, base, base_vel, rot, ps, vs, idrift, sv, svv, rate_lead, z,
-                                        order, excluded, r_var, gate_k)
-    lazy_flush(P, Q, kq)
-    return nu, s, st
-
-
-@njit(**_JIT)
-def _sd_doppler_batch_q(x, P, Q, kq, base, base_vel, rot, ps, vs, idrift, sv, svv, rate_lead, z, order, excluded,
-                        r_var, gate_k):
-    """:func:`sd_doppler_batch` on the lazily updated ``P - Q[:kq]^T Q[:kq]``, not flushed:
-    returns ``(nu, s, status, kq)``."""
     m = order.shape[0]
     out_nu = np.zeros(m)
     out_s = np.zeros(m)
@@ -836,24 +826,13 @@ def _sd_doppler_batch_q(x, P, Q, kq, base, base_vel, rot, ps, vs, idrift, sv, sv
 
 
 @njit(**_JIT)
-def sd_pseudorange_batch(x, P, base, rot, ps, iclk, sv, rho_lead, z, order, excluded, r_var, gate_k):
+def sd_pseudorange_batch(x, P, Q, kq, base, rot, ps, iclk, sv, rho_lead, z, order, excluded, r_var, gate_k):
     """One vehicle's SD pseudorange updates in ``order`` (models.SdPseudorangeRows.row).
 
     ``h = |sv - (base + R^T p)| - rho_lead + clk`` (MacGougan (2009) eq. 3.2-3.3), Jacobian
-    ``(-R u, 1)`` on (position, clock). ``excluded`` as in :func:`sd_doppler_batch`.
-    Returns ``(nu, s, status)`` indexed like ``order``.
+    ``(-R u, 1)`` on (position, clock). ``excluded`` as in :func:`sd_doppler_batch`. On the
+    lazily updated ``P - Q[:kq]^T Q[:kq]``, not flushed. Returns ``(nu, s, status, kq)``.
     """
-    Q = np.empty((LAZY_RANK, x.shape[0]))  # deferred rank-1 terms (see lazy_scalar_update)
-    nu, s, st, kq = _sd_pseudorange_batch_q(x, P, Q, 0, base, rot, ps, iclk, sv, rho_lead, z, order, excluded,
-                                            r_var, gate_k)
-    lazy_flush(P, Q, kq)
-    return nu, s, st
-
-
-@njit(**_JIT)
-def _sd_pseudorange_batch_q(x, P, Q, kq, base, rot, ps, iclk, sv, rho_lead, z, order, excluded, r_var, gate_k):
-    """:func:`sd_pseudorange_batch` on the lazily updated ``P - Q[:kq]^T Q[:kq]``, not
-    flushed: returns ``(nu, s, status, kq)``."""
     m = order.shape[0]
     out_nu = np.zeros(m)
     out_s = np.zeros(m)
@@ -1450,28 +1429,18 @@ def range_rates_from(p, v, sv, svv):
 
 
 @njit(**_JIT)
-def sd_pseudorange_epoch(x, P, base, rot, ps, iclk, sv, rho_lead, z, r_var, gate_k, detect_jump, reset_var):
-    """One vehicle's SD pseudorange epoch in one call (production engine), the steps of
+def sd_pseudorange_epoch(x, P, Q, kq, base, rot, ps, iclk, sv, rho_lead, z, r_var, gate_k, detect_jump, reset_var):
+    """One vehicle's SD pseudorange epoch (production engine), the steps of
     ``ClusterFilterBase._sd_pseudoranges`` with the same kernels: rows at ``x``
     (:func:`sd_pseudorange_rows`), the clock-jump test (:func:`clock_jump_test`; on a jump
     the clock state is re-initialized at ``clk + median(nu)`` with variance ``reset_var`` and
     the rows rebuilt), the screen and first-update order (:func:`first_unflagged_order`),
-    then the sequential updates (:func:`sd_pseudorange_batch`).
+    then the sequential updates (:func:`sd_pseudorange_batch`). On the lazily updated
+    ``P - Q[:kq]^T Q[:kq]`` (a clock reset also clears the clock's column of Q, so the reset
+    entries are exact), not flushed.
 
-    Returns ``(jump, order, isolated, n_flagged, nu, s, status)``.
+    Returns ``(jump, order, isolated, n_flagged, nu, s, status, kq)``.
     """
-    Q = np.empty((LAZY_RANK, x.shape[0]))
-    jump, order, isolated, n_flag, nu, s, st, kq = _sd_pseudorange_epoch_q(
-        x, P, Q, 0, base, rot, ps, iclk, sv, rho_lead, z, r_var, gate_k, detect_jump, reset_var)
-    lazy_flush(P, Q, kq)
-    return jump, order, isolated, n_flag, nu, s, st
-
-
-@njit(**_JIT)
-def _sd_pseudorange_epoch_q(x, P, Q, kq, base, rot, ps, iclk, sv, rho_lead, z, r_var, gate_k, detect_jump,
-                            reset_var):
-    """:func:`sd_pseudorange_epoch` on the lazily updated ``P - Q[:kq]^T Q[:kq]`` (a clock
-    reset also clears the clock's column of Q, so the reset entries are exact); not flushed."""
     h, val = sd_pseudorange_rows(x, base, rot, ps, iclk, sv, rho_lead, x[iclk])
     jump = False
     if detect_jump:
@@ -1486,30 +1455,20 @@ def _sd_pseudorange_epoch_q(x, P, Q, kq, base, rot, ps, iclk, sv, rho_lead, z, r
             _set_block1(x, P, iclk, x[iclk] + med, reset_var)
             h, val = sd_pseudorange_rows(x, base, rot, ps, iclk, sv, rho_lead, x[iclk])
     order, excluded, isolated, n_flag = first_unflagged_order(h, val, z, math.sqrt(r_var), gate_k, 4)
-    nu, s, st, kq = _sd_pseudorange_batch_q(x, P, Q, kq, base, rot, ps, iclk, sv, rho_lead, z, order, excluded,
+    nu, s, st, kq = sd_pseudorange_batch(x, P, Q, kq, base, rot, ps, iclk, sv, rho_lead, z, order, excluded,
                                             r_var, gate_k)
     return jump, order, isolated, n_flag, nu, s, st, kq
 
 
 @njit(**_JIT)
-def sd_doppler_epoch(x, P, base, base_vel, rot, ps, vs, idrift, sv, svv, rate_lead, z, r_var, gate_k):
-    """One vehicle's SD Doppler epoch in one call (production engine): rows
-    (:func:`sd_doppler_rows`), screen on (velocity, drift) and order
-    (:func:`first_unflagged_order`), updates (:func:`sd_doppler_batch`), as
-    ``ClusterFilterBase._sd_dopplers``. Returns ``(order, n_flagged, nu, s, status)``."""
-    Q = np.empty((LAZY_RANK, x.shape[0]))
-    order, n_flag, nu, s, st, kq = _sd_doppler_epoch_q(x, P, Q, 0, base, base_vel, rot, ps, vs, idrift, sv, svv,
-                                                       rate_lead, z, r_var, gate_k)
-    lazy_flush(P, Q, kq)
-    return order, n_flag, nu, s, st
-
-
-@njit(**_JIT)
-def _sd_doppler_epoch_q(x, P, Q, kq, base, base_vel, rot, ps, vs, idrift, sv, svv, rate_lead, z, r_var, gate_k):
-    """:func:`sd_doppler_epoch` on the lazily updated ``P - Q[:kq]^T Q[:kq]``; not flushed."""
+def sd_doppler_epoch(x, P, Q, kq, base, base_vel, rot, ps, vs, idrift, sv, svv, rate_lead, z, r_var, gate_k):
+    """One vehicle's SD Doppler epoch (production engine): rows (:func:`sd_doppler_rows`),
+    screen on (velocity, drift) and order (:func:`first_unflagged_order`), updates
+    (:func:`sd_doppler_batch`), as ``ClusterFilterBase._sd_dopplers``; on the lazily updated
+    ``P - Q[:kq]^T Q[:kq]``, not flushed. Returns ``(order, n_flagged, nu, s, status, kq)``."""
     h, val = sd_doppler_rows(x, base, base_vel, rot, ps, vs, idrift, sv, svv, rate_lead)
     order, excluded, isolated, n_flag = first_unflagged_order(h, val, z, math.sqrt(r_var), gate_k, 4)
-    nu, s, st, kq = _sd_doppler_batch_q(x, P, Q, kq, base, base_vel, rot, ps, vs, idrift, sv, svv, rate_lead, z,
+    nu, s, st, kq = sd_doppler_batch(x, P, Q, kq, base, base_vel, rot, ps, vs, idrift, sv, svv, rate_lead, z,
                                         order, excluded, r_var, gate_k)
     return order, n_flag, nu, s, st, kq
 
@@ -1568,7 +1527,7 @@ def sd_pseudorange_vehicles(x, P, base, rot, ps, iclk, sv_cat, pr_cat, row0, sv_
         for i in range(b - a):
             z[i] = pr_cat[row0[j] + iv_cat[a + i]] - pr_lead[il_cat[a + i]]
         rho_lead = ranges_from(base, _gather_rows(sv_lead, 0, il_cat, a, b))
-        jp, o, iso, nf, nu_j, s_j, st_j, kq = _sd_pseudorange_epoch_q(
+        jp, o, iso, nf, nu_j, s_j, st_j, kq = sd_pseudorange_epoch(
             x, P, Q, kq, base, rot, ps[j], iclk[j], _gather_rows(sv_cat, row0[j], iv_cat, a, b), rho_lead, z, r_var,
             gate_k, detect_jump, reset_var)
         jump[j], isolated[j], n_flag[j] = jp, iso, nf
@@ -1594,7 +1553,7 @@ def sd_doppler_vehicles(x, P, base, base_vel, rot, ps, vs, idrift, sv_cat, svv_c
         a, b = moff[j], moff[j + 1]
         rate_lead = range_rates_from(base, base_vel, _gather_rows(sv_lead, 0, il_cat, a, b),
                                      _gather_rows(svv_lead, 0, il_cat, a, b))
-        o, nf, nu_j, s_j, st_j, kq = _sd_doppler_epoch_q(
+        o, nf, nu_j, s_j, st_j, kq = sd_doppler_epoch(
             x, P, Q, kq, base, base_vel, rot, ps[j], vs[j], idrift[j], _gather_rows(sv_cat, row0[j], iv_cat, a, b),
             _gather_rows(svv_cat, row0[j], iv_cat, a, b), rate_lead, z_cat[a:b].copy(), r_var, gate_k)
         n_flag[j] = nf
