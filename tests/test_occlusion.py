@@ -574,11 +574,7 @@ def test_any_hit_mode_agrees_with_first_hit_on_blocked_or_clear():
     building that can overlap (same first crossing and blocker as the numpy/index path)."""
     rng = np.random.default_rng(23)
     nb = 60
-    cen = rng.uniform(-150, 150, (nb, 2))
-    half = rng.uniform(2, 25, (nb, 2))
-    ang = rng.uniform(0, np.pi, nb)
-    h = rng.uniform(5, 60, nb)
-    blds = [building(f"b{i}", _rotated_rect(cen[i], half[i], ang[i]), h[i]) for i in range(nb)]
+    blds = _random_buildings(rng, nb, 150.0, (2.0, 25.0), (5.0, 60.0))
     g = geometry(*blds)
     g_np = geometry(*blds)
     g_np.compiled_pairs_max = 0
@@ -683,11 +679,14 @@ def test_compiled_box_hits_per_box_set_equal_reference_per_set():
     assert np.isinf(t[np.isin(box_set, [3, 17])]).all()
 
 
-def _street_corner_buildings(rng: np.random.Generator, nb: int = 15) -> list[Building]:
-    cen = rng.uniform(-70, 70, (nb, 2))
-    half = rng.uniform(3, 15, (nb, 2))
+def _random_buildings(rng: np.random.Generator, nb: int, extent_m: float, half_m: tuple[float, float],
+                      height_m: tuple[float, float]) -> list[Building]:
+    """``nb`` rotated rectangular buildings: centres uniform in +-extent_m, half sizes and
+    heights uniform in the given ranges, headings uniform in [0, pi)."""
+    cen = rng.uniform(-extent_m, extent_m, (nb, 2))
+    half = rng.uniform(*half_m, (nb, 2))
     ang = rng.uniform(0, np.pi, nb)
-    h = rng.uniform(4, 40, nb)
+    h = rng.uniform(*height_m, nb)
     return [building(f"b{i}", _rotated_rect(cen[i], half[i], ang[i]), h[i]) for i in range(nb)]
 
 
@@ -702,7 +701,7 @@ def test_links_many_equals_links_per_step(compiled):
     changes only which links are evaluated together, never the floating-point operations of a link.
     """
     rng = np.random.default_rng(31)
-    g = geometry(*_street_corner_buildings(rng))
+    g = geometry(*_random_buildings(rng, 15, 70.0, (3.0, 15.0), (4.0, 40.0)))
     if not compiled:
         g.compiled_pairs_max = 0
     n_steps = 30
