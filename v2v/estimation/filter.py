@@ -83,6 +83,9 @@ from abc import ABC, abstractmethod
 from collections import deque
 from collections.abc import Sequence
 from dataclasses import dataclass, field
+from functools import partial
+from itertools import repeat
+from operator import itemgetter
 from typing import NamedTuple
 
 import numpy as np
@@ -234,6 +237,12 @@ class UpdateInfo(NamedTuple):
     nis: float
     accepted: bool
     prn: int = -1
+
+
+#: ``UpdateInfo`` from a 7-tuple without a Python-level call (``tuple.__new__``): the compiled
+#: engines build their records with ``map(_info_from_tuple, zip(...))`` (same fields, same values)
+_info_from_tuple = partial(tuple.__new__, UpdateInfo)
+_nis_accepted = itemgetter(4, 5)  # (nis, accepted) of an UpdateInfo
 
 
 def scalar_update(x: F64, P: F64, idx: NDArray[np.int64], val: F64, innovation: float, r_var: float,
@@ -437,10 +446,11 @@ class ClusterFilterBase(ABC):
                     if self._vehicle_ready[v] and v not in just_initialized]
             if jobs:
                 infos += self._sd_dopplers_all(geo, lead_ep, jobs)
-        code_ok: dict[str, set[int]] = {}
-        for info in infos:
-            if info.kind == KIND_SD_PR and info.accepted:
-                code_ok.setdefault(info.vehicles[0], set()).add(info.prn)
+        code_ok: dict[str, set[int]] = {}  # accepted SD pseudoranges: only the carrier phase uses them
+        if self.config.phase is not None:
+            for info in infos:
+                if info.kind == KIND_SD_PR and info.accepted:
+                    code_ok.setdefault(info.vehicles[0], set()).add(info.prn)
         # Fewer than 4 SD pseudoranges (satellites seen by both): the epoch cannot fix the
         # relative position, so add "relative up = 0" as in epochs without GNSS (MacGougan
         # (2009) section 5: "a height constraint was employed when fewer than 4 GPS satellites
@@ -691,7 +701,7 @@ class ClusterFilterBase(ABC):
     def _record_tests(self, v: str, infos: list[UpdateInfo]) -> None:
         """:meth:`_record_test` of several records in order."""
         w = self._nis_window.setdefault(v, deque(maxlen=self.config.divergence_window))
-        w.extend((info.nis, info.accepted) for info in infos)
+        w.extend(map(_nis_accepted, infos))
 
     def window_mean_nis(self, v: str) -> float:
         """Mean NIS of the last ``divergence_window`` SD-pseudorange tests of ``v`` (NaN if none)."""
@@ -709,7 +719,7 @@ class ClusterFilterBase(ABC):
         w = self._nis_window.get(v)
         if w is None or len(w) < self.config.divergence_window:
             return False
-        n_rej = sum(1 for _, ok in w if not ok)
+        n_rej = len(w) - sum(map(itemgetter(1), w))  # = the tests with ok False
         return n_rej > self.config.divergence_reject_fraction * len(w)
 
     def _position_sigma_m(self, v: str) -> float:
@@ -1208,6 +1218,8 @@ def _cat3(parts: list[F64]) -> F64:
     """The (m_i, 3) float64 pieces one after another (C-contiguous; one piece: no copy if it is)."""
     if len(parts) == 1:
         return _c3(parts[0])
+    if all(p.ndim == 2 for p in parts):  # the usual case: every piece already (m_i, 3)
+        return np.concatenate(parts, dtype=np.float64)
     return np.concatenate([np.asarray(p, dtype=np.float64).reshape(-1, 3) for p in parts])
 
 
@@ -1220,7 +1232,23 @@ def _cat1(parts: list[F64]) -> F64:
 def _cati(parts: list[NDArray]) -> NDArray[np.int64]:
     if len(parts) == 1:
         return np.ascontiguousarray(parts[0], dtype=np.int64)
-    return np.concatenate([np.asarray(p, dtype=np.int64).reshape(-1) for p in parts])
+    return np.concatenate(parts, dtype=np.int64, casting="same_kind")
+
+
+def _all_accepted_records(kind: str, vehicles: list[str], moff: NDArray[np.int64], order: NDArray[np.int64], nu: F64,
+                          s: F64, st: NDArray[np.int64], prns: list[NDArray], row0: NDArray[np.int64],
+                          iv_cat: NDArray[np.int64]) -> list[UpdateInfo] | None:
+    """The records of an all-vehicle GNSS kernel call (outputs sliced by ``moff``, ``order``
+    local to each vehicle) when every measurement was accepted, as ``ClusterEkf._records``
+    builds them vehicle by vehicle; None if any was not (then the per-vehicle path counts why)."""
+    if np.count_nonzero(st):
+        return None
+    counts = np.diff(moff)
+    jrep = np.repeat(np.arange(len(vehicles)), counts)
+    prn = _cati(prns)[row0[jrep] + iv_cat[moff[jrep] + order]]  # satellite of each output: prns[j][iv_j[order]]
+    veh = itertools.chain.from_iterable(map(repeat, [(v,) for v in vehicles], counts.tolist()))
+    return list(map(_info_from_tuple, zip(repeat(kind), veh, nu.tolist(), s.tolist(), (nu * nu / s).tolist(),
+                                          repeat(True), prn.tolist())))
 
 
 class ClusterEkf(ClusterFilterBase):
@@ -1316,25 +1344,30 @@ class ClusterEkf(ClusterFilterBase):
                        float(bb[1]), cfg.uwb_scale_bounds is not None, float(sbnd[0]), float(sbnd[1]))
 
     def _uwb_records(self, recs: tuple, a_list: list[str], b_list: list[str],
-                     pairs: list[tuple[str, str]]) -> list[tuple[int, UpdateInfo]]:
-        """(range index, record) of a UWB kernel's output (counters as :meth:`_record`)."""
+                     pairs: list[tuple[str, str]]) -> tuple[list[int], list[UpdateInfo]]:
+        """(range index of each record, the records) of a UWB kernel's output (counters as :meth:`_record`)."""
         n_rec, kind, meas, nu, s, st = recs
-        out = []
-        for kd, k, nuk, sk, stk in zip(kind[:n_rec].tolist(), meas[:n_rec].tolist(), nu[:n_rec].tolist(),
-                                       s[:n_rec].tolist(), st[:n_rec].tolist(), strict=True):
+        nu, s, st, meas = nu[:n_rec], s[:n_rec], st[:n_rec], meas[:n_rec].tolist()
+        if not st.any() and not kind[:n_rec].any():  # all accepted ranges (ACCEPTED == REC_UWB == 0): no counters
+            ab = list(zip(a_list, b_list))
+            return meas, list(map(_info_from_tuple, zip(repeat(KIND_UWB), map(ab.__getitem__, meas), nu.tolist(),
+                                                        s.tolist(), (nu * nu / s).tolist(), repeat(True), repeat(-1))))
+        ks, out = [], []
+        for kd, k, nuk, sk, stk in zip(kind[:n_rec].tolist(), meas, nu.tolist(), s.tolist(), st.tolist(), strict=True):
             if kd == kernels.REC_UWB:
                 info = self._record(KIND_UWB, (a_list[k], b_list[k]), nuk, sk, stk, -1, "uwb_deferred_nonlinear")
             else:
                 info = self._record(KIND_CONSTRAINT, pairs[k], nuk, sk, stk, -1, "")
             if info is not None:
-                out.append((k, info))
-        return out
+                ks.append(k)
+                out.append(info)
+        return ks, out
 
     def _uwb_sequence(self, a_list: list[str], b_list: list[str], z: F64) -> list[UpdateInfo]:
         """All usable ranges in one :func:`v2v.estimation.kernels.uwb_batch` call."""
         pairs, args = self._uwb_kernel_args(a_list, b_list, z)
         recs = kernels.uwb_batch(self._x, self._P, *args)
-        return [info for _, info in self._uwb_records(recs, a_list, b_list, pairs)]
+        return self._uwb_records(recs, a_list, b_list, pairs)[1]
 
     def update_uwb_events(self, dts_s: Sequence[float], events: Sequence[UwbRanges]) -> list[list[UpdateInfo]]:
         """:meth:`ClusterFilterBase.update_uwb_events` in one
@@ -1359,8 +1392,9 @@ class ClusterEkf(ClusterFilterBase):
                                      self._az_ia, self._az_ir, self._apar)
         out: list[list[UpdateInfo]] = [[] for _ in events]
         ev_of = np.searchsorted(np.asarray(starts), np.arange(len(a_list)), side="right") - 1
-        for k, info in self._uwb_records(recs, a_list, b_list, pairs):
-            out[int(ev_of[k])].append(info)
+        ks, infos = self._uwb_records(recs, a_list, b_list, pairs)
+        for e, info in zip(ev_of[ks].tolist(), infos, strict=True):
+            out[e].append(info)
         return out
 
     def _bearing_sequence(self, a_list: list[str], b_list: list[str], z: F64, az_reported: F64) -> list[UpdateInfo]:
@@ -1379,6 +1413,9 @@ class ClusterEkf(ClusterFilterBase):
                                           cfg.azimuth_sigma0_rad**2)
         for v, i in self._az_index.items():
             self._azimuth_ready[v] = bool(ready[i])
+        if not st.any():  # all accepted: no counters
+            return list(map(_info_from_tuple, zip(repeat(KIND_BEARING), zip(a_list, b_list), nu.tolist(), s.tolist(),
+                                                  (nu * nu / s).tolist(), repeat(True), repeat(-1))))
         out = []
         for k, (nuk, sk, stk) in enumerate(zip(nu.tolist(), s.tolist(), st.tolist(), strict=True)):
             info = self._record(KIND_BEARING, (a_list[k], b_list[k]), nuk, sk, stk, -1, "bearing_deferred_nonlinear")
@@ -1395,24 +1432,30 @@ class ClusterEkf(ClusterFilterBase):
         cfg = self.config
         lay = self.layout
         row0, moff = _offsets([len(ep.prn) for _, ep, _, _ in jobs]), _offsets([len(iv) for _, _, iv, _ in jobs])
+        iv_cat = _cati([iv for *_, iv, _ in jobs])
         jump, isolated, n_flagged, order, nu, s, st = kernels.sd_pseudorange_vehicles(
             self._x, self._P, geo.base_ecef_m, geo.rot_ecef_to_enu,
             np.array([self._pos0[v] for v, *_ in jobs], dtype=np.int64),
             np.array([lay.clock(v) for v, *_ in jobs], dtype=np.int64),
             _cat3([ep.sv_pos_ecef_m for _, ep, _, _ in jobs]), _cat1([ep.pseudorange_m for _, ep, _, _ in jobs]),
             row0, _c3(lead_ep.sv_pos_ecef_m), _c1(lead_ep.pseudorange_m),
-            _cati([iv for *_, iv, _ in jobs]), _cati([il for *_, il in jobs]), moff,
+            iv_cat, _cati([il for *_, il in jobs]), moff,
             cfg.noise.sd_pseudorange_var_m2, self._k, cfg.clock_jump_detection, cfg.clock_reset_sigma_m**2)
+        recs_all = _all_accepted_records(KIND_SD_PR, [v for v, *_ in jobs], moff, order, nu, s, st,
+                                         [ep.prn for _, ep, _, _ in jobs], row0, iv_cat)
         out: list[UpdateInfo] = []
-        for j, (v, ep, iv, _) in enumerate(jobs):
-            if jump[j]:
+        mo = moff.tolist()
+        for j, ((v, ep, iv, _), jp, iso, nf) in enumerate(zip(jobs, jump.tolist(), isolated.tolist(), n_flagged.tolist(),
+                                                             strict=True)):
+            if jp:
                 self._nis_window.pop(v, None)
                 self._count("clock_jump_detected")
-            if n_flagged[j]:
-                self.counters["screened_first_update"] = self.counters.get("screened_first_update", 0) + int(n_flagged[j])
-            self.integrity_available[v] = bool(isolated[j])
-            a, b = moff[j], moff[j + 1]
-            recs = self._records(KIND_SD_PR, (v,), order[a:b], nu[a:b], s[a:b], st[a:b], ep.prn[iv].tolist())
+            if nf:
+                self.counters["screened_first_update"] = self.counters.get("screened_first_update", 0) + nf
+            self.integrity_available[v] = iso
+            a, b = mo[j], mo[j + 1]
+            recs = recs_all[a:b] if recs_all is not None else \
+                self._records(KIND_SD_PR, (v,), order[a:b], nu[a:b], s[a:b], st[a:b], ep.prn[iv])
             self._record_tests(v, recs)
             out += recs
         return out
@@ -1434,6 +1477,7 @@ class ClusterEkf(ClusterFilterBase):
             kept.append((v, ep, iv, il, zd))
         lay = self.layout
         row0, moff = _offsets([len(ep.prn) for _, ep, *_ in kept]), _offsets([len(iv) for _, _, iv, _, _ in kept])
+        iv_cat = _cati([k[2] for k in kept])
         n_flagged, order, nu, s, st = kernels.sd_doppler_vehicles(
             self._x, self._P, geo.base_ecef_m, geo.base_vel_ecef_mps, geo.rot_ecef_to_enu,
             np.array([self._pos0[v] for v, *_ in kept], dtype=np.int64),
@@ -1441,30 +1485,35 @@ class ClusterEkf(ClusterFilterBase):
             np.array([lay.drift(v) for v, *_ in kept], dtype=np.int64),
             _cat3([ep.sv_pos_ecef_m for _, ep, *_ in kept]), _cat3([ep.sv_vel_ecef_mps for _, ep, *_ in kept]), row0,
             _c3(lead_ep.sv_pos_ecef_m), _c3(lead_ep.sv_vel_ecef_mps), _cat1([k[4] for k in kept]),
-            _cati([k[2] for k in kept]), _cati([k[3] for k in kept]), moff,
+            iv_cat, _cati([k[3] for k in kept]), moff,
             self.config.noise.sd_doppler_var_m2ps2, self._k)
+        recs_all = _all_accepted_records(KIND_SD_DOPPLER, [k[0] for k in kept], moff, order, nu, s, st,
+                                         [k[1].prn for k in kept], row0, iv_cat)
         out: list[UpdateInfo] = []
-        for j, (v, ep, iv, _, _) in enumerate(kept):
-            if n_flagged[j]:
-                self.counters["screened_first_update"] = self.counters.get("screened_first_update", 0) + int(n_flagged[j])
-            a, b = moff[j], moff[j + 1]
-            out += self._records(KIND_SD_DOPPLER, (v,), order[a:b], nu[a:b], s[a:b], st[a:b], ep.prn[iv].tolist())
+        mo = moff.tolist()
+        for j, ((v, ep, iv, _, _), nf) in enumerate(zip(kept, n_flagged.tolist(), strict=True)):
+            if nf:
+                self.counters["screened_first_update"] = self.counters.get("screened_first_update", 0) + nf
+            a, b = mo[j], mo[j + 1]
+            out += recs_all[a:b] if recs_all is not None else \
+                self._records(KIND_SD_DOPPLER, (v,), order[a:b], nu[a:b], s[a:b], st[a:b], ep.prn[iv])
         return out
 
     def _records(self, kind: str, vehicles: tuple[str, ...], order: NDArray[np.int64], nu: F64, s: F64,
-                 st: NDArray[np.int64], prns: list[int]) -> list[UpdateInfo]:
+                 st: NDArray[np.int64], prns: NDArray[np.int64]) -> list[UpdateInfo]:
         """The records of one vehicle's GNSS batch (``prns`` indexed like the rows, the
         kernel outputs like ``order``): accepted ones built directly, the others by :meth:`_record`."""
         if not st.any():  # all accepted (kernels.ACCEPTED == 0): the common case, no counters
-            return [UpdateInfo(kind, vehicles, nuk, sk, nuk * nuk / sk, True, prns[o])
-                    for o, nuk, sk in zip(order.tolist(), nu.tolist(), s.tolist(), strict=True)]
+            # nis = nu * nu / s elementwise: the same two IEEE operations as on Python floats
+            return list(map(_info_from_tuple, zip(repeat(kind), repeat(vehicles), nu.tolist(), s.tolist(),
+                                                  (nu * nu / s).tolist(), repeat(True), prns[order].tolist())))
         out = []
         accepted = kernels.ACCEPTED
-        for o, nuk, sk, stk in zip(order.tolist(), nu.tolist(), s.tolist(), st.tolist(), strict=True):
+        for o, nuk, sk, stk in zip(prns[order].tolist(), nu.tolist(), s.tolist(), st.tolist(), strict=True):
             if stk == accepted:
-                out.append(UpdateInfo(kind, vehicles, nuk, sk, nuk * nuk / sk, True, prns[o]))
+                out.append(UpdateInfo(kind, vehicles, nuk, sk, nuk * nuk / sk, True, o))
             else:
-                info = self._record(kind, vehicles, nuk, sk, stk, prns[o], "")
+                info = self._record(kind, vehicles, nuk, sk, stk, o, "")
                 if info is not None:
                     out.append(info)
         return out
