@@ -15,6 +15,7 @@ import itertools
 from collections import Counter
 from collections.abc import Callable, Iterable, Sequence
 from dataclasses import dataclass, field
+from operator import itemgetter
 from pathlib import Path
 from typing import Any
 
@@ -415,9 +416,12 @@ class UpdateLog:
         faulty = np.fromiter((f for _, _, fs in self._pending for f in fs), bool, n)
         kind, vehicles, _nu, _s, nis, accepted, prn = zip(*infos, strict=True)  # UpdateInfo fields
         joined = {v: ",".join(v) for v in set(vehicles)}
+        names = sorted(set(kind))  # the chunk's kinds; each update stores its kind as an index into them
+        code = {k: i for i, k in enumerate(names)}
         cols = {
             "t_s": t_s,
-            "kind": np.array(kind, dtype=object),
+            "kind_names": names,
+            "kind_code": np.fromiter(map(code.__getitem__, kind), np.int16, n),
             "vehicles": np.array([joined[v] for v in vehicles], dtype=object),
             "prn": list(prn),
             "nis": np.fromiter(nis, float, n),
@@ -443,12 +447,14 @@ class UpdateLog:
             return {}
         kinds: set[str] = set()
         for cols in self._chunks(pickle):
-            kinds.update(np.unique(cols["kind"]).tolist())
+            kinds.update(cols["kind_names"])
         out: dict[str, Any] = {}
         for kind in sorted(kinds):
             acc, faulty, nis = [], [], []
             for cols in self._chunks(pickle):
-                m = cols["kind"] == kind
+                if kind not in cols["kind_names"]:
+                    continue
+                m = cols["kind_code"] == cols["kind_names"].index(kind)
                 acc.append(cols["accepted"][m])
                 faulty.append(cols["faulty"][m])
                 nis.append(cols["nis"][m])
@@ -479,7 +485,10 @@ class UpdateLog:
             except EOFError:
                 break
             for k in names:
-                out[k].extend(cols[k].tolist() if isinstance(cols[k], np.ndarray) else cols[k])
+                if k == "kind":  # stored as indices into the chunk's kind names
+                    out[k].extend(map(cols["kind_names"].__getitem__, cols["kind_code"].tolist()))
+                else:
+                    out[k].extend(cols[k].tolist() if isinstance(cols[k], np.ndarray) else cols[k])
         self._file.seek(0, 2)
         return out
 
@@ -722,11 +731,14 @@ def run_solution(sol: SolutionSection, ekf: ClusterEkf, events: Sequence[Event],
 _KIND_COLUMNS = {"sd_pseudorange": "pr", "sd_pseudorange_pair": "pr", "sd_doppler": "doppler", "sd_phase": "phase"}
 
 
+_VEHICLES_KIND_ACCEPTED = itemgetter(1, 0, 5)  # (vehicles, kind, accepted) of an UpdateInfo
+
+
 def _update_counts(infos: Iterable[UpdateInfo]) -> dict[str, dict[str, int]]:
     """``{vehicle: {"used_<kind>" | "rejected_<kind>": count}}`` of an output interval's updates
     (counted per distinct (vehicles, kind, accepted) first: tens of thousands of records)."""
     counts: dict[str, dict[str, int]] = {}
-    for (vehs, kind, accepted), n in Counter((i.vehicles, i.kind, i.accepted) for i in infos).items():
+    for (vehs, kind, accepted), n in Counter(map(_VEHICLES_KIND_ACCEPTED, infos)).items():
         key = ("used_" if accepted else "rejected_") + _short(kind)
         for v in vehs:
             c = counts.setdefault(v, {})

@@ -1349,7 +1349,7 @@ class ClusterEkf(ClusterFilterBase):
         n_rec, kind, meas, nu, s, st = recs
         nu, s, st, meas = nu[:n_rec], s[:n_rec], st[:n_rec], meas[:n_rec].tolist()
         if not st.any() and not kind[:n_rec].any():  # all accepted ranges (ACCEPTED == REC_UWB == 0): no counters
-            ab = list(zip(a_list, b_list))
+            ab = list(zip(a_list, b_list, strict=True))
             return meas, list(map(_info_from_tuple, zip(repeat(KIND_UWB), map(ab.__getitem__, meas), nu.tolist(),
                                                         s.tolist(), (nu * nu / s).tolist(), repeat(True), repeat(-1))))
         ks, out = [], []
@@ -1414,7 +1414,7 @@ class ClusterEkf(ClusterFilterBase):
         for v, i in self._az_index.items():
             self._azimuth_ready[v] = bool(ready[i])
         if not st.any():  # all accepted: no counters
-            return list(map(_info_from_tuple, zip(repeat(KIND_BEARING), zip(a_list, b_list), nu.tolist(), s.tolist(),
+            return list(map(_info_from_tuple, zip(repeat(KIND_BEARING), zip(a_list, b_list, strict=True), nu.tolist(), s.tolist(),
                                                   (nu * nu / s).tolist(), repeat(True), repeat(-1))))
         out = []
         for k, (nuk, sk, stk) in enumerate(zip(nu.tolist(), s.tolist(), st.tolist(), strict=True)):
