@@ -81,7 +81,7 @@ import itertools
 import math
 from abc import ABC, abstractmethod
 from collections import deque
-from collections.abc import Sequence
+from collections.abc import Iterable, Sequence
 from dataclasses import dataclass, field
 from functools import partial
 from itertools import repeat
@@ -243,6 +243,14 @@ class UpdateInfo(NamedTuple):
 #: engines build their records with ``map(_info_from_tuple, zip(...))`` (same fields, same values)
 _info_from_tuple = partial(tuple.__new__, UpdateInfo)
 _nis_accepted = itemgetter(4, 5)  # (nis, accepted) of an UpdateInfo
+
+
+def _accepted_infos(kind: str, vehicles: Iterable[tuple[str, ...]], nu: F64, s: F64,
+                    prns: Iterable[int]) -> list[UpdateInfo]:
+    """Records of accepted updates from a kernel's output arrays, one per element of ``nu``:
+    ``nis = nu * nu / s`` elementwise (the same two IEEE operations as on Python floats)."""
+    return list(map(_info_from_tuple, zip(repeat(kind), vehicles, nu.tolist(), s.tolist(), (nu * nu / s).tolist(),
+                                          repeat(True), prns)))
 
 
 def scalar_update(x: F64, P: F64, idx: NDArray[np.int64], val: F64, innovation: float, r_var: float,
@@ -1218,7 +1226,7 @@ def _cat3(parts: list[F64]) -> F64:
     """The (m_i, 3) float64 pieces one after another (C-contiguous; one piece: no copy if it is)."""
     if len(parts) == 1:
         return _c3(parts[0])
-    if all(p.ndim == 2 for p in parts):  # the usual case: every piece already (m_i, 3)
+    if all(p.ndim == 2 and p.shape[1] == 3 for p in parts):  # the usual case: every piece already (m_i, 3)
         return np.concatenate(parts, dtype=np.float64)
     return np.concatenate([np.asarray(p, dtype=np.float64).reshape(-1, 3) for p in parts])
 
@@ -1247,8 +1255,7 @@ def _all_accepted_records(kind: str, vehicles: list[str], moff: NDArray[np.int64
     jrep = np.repeat(np.arange(len(vehicles)), counts)
     prn = _cati(prns)[row0[jrep] + iv_cat[moff[jrep] + order]]  # satellite of each output: prns[j][iv_j[order]]
     veh = itertools.chain.from_iterable(map(repeat, [(v,) for v in vehicles], counts.tolist()))
-    return list(map(_info_from_tuple, zip(repeat(kind), veh, nu.tolist(), s.tolist(), (nu * nu / s).tolist(),
-                                          repeat(True), prn.tolist())))
+    return _accepted_infos(kind, veh, nu, s, prn.tolist())
 
 
 class ClusterEkf(ClusterFilterBase):
@@ -1350,8 +1357,7 @@ class ClusterEkf(ClusterFilterBase):
         nu, s, st, meas = nu[:n_rec], s[:n_rec], st[:n_rec], meas[:n_rec].tolist()
         if not st.any() and not kind[:n_rec].any():  # all accepted ranges (ACCEPTED == REC_UWB == 0): no counters
             ab = list(zip(a_list, b_list, strict=True))
-            return meas, list(map(_info_from_tuple, zip(repeat(KIND_UWB), map(ab.__getitem__, meas), nu.tolist(),
-                                                        s.tolist(), (nu * nu / s).tolist(), repeat(True), repeat(-1))))
+            return meas, _accepted_infos(KIND_UWB, map(ab.__getitem__, meas), nu, s, repeat(-1))
         ks, out = [], []
         for kd, k, nuk, sk, stk in zip(kind[:n_rec].tolist(), meas, nu.tolist(), s.tolist(), st.tolist(), strict=True):
             if kd == kernels.REC_UWB:
@@ -1414,8 +1420,7 @@ class ClusterEkf(ClusterFilterBase):
         for v, i in self._az_index.items():
             self._azimuth_ready[v] = bool(ready[i])
         if not st.any():  # all accepted: no counters
-            return list(map(_info_from_tuple, zip(repeat(KIND_BEARING), zip(a_list, b_list, strict=True), nu.tolist(), s.tolist(),
-                                                  (nu * nu / s).tolist(), repeat(True), repeat(-1))))
+            return _accepted_infos(KIND_BEARING, zip(a_list, b_list, strict=True), nu, s, repeat(-1))
         out = []
         for k, (nuk, sk, stk) in enumerate(zip(nu.tolist(), s.tolist(), st.tolist(), strict=True)):
             info = self._record(KIND_BEARING, (a_list[k], b_list[k]), nuk, sk, stk, -1, "bearing_deferred_nonlinear")
@@ -1504,9 +1509,7 @@ class ClusterEkf(ClusterFilterBase):
         """The records of one vehicle's GNSS batch (``prns`` indexed like the rows, the
         kernel outputs like ``order``): accepted ones built directly, the others by :meth:`_record`."""
         if not st.any():  # all accepted (kernels.ACCEPTED == 0): the common case, no counters
-            # nis = nu * nu / s elementwise: the same two IEEE operations as on Python floats
-            return list(map(_info_from_tuple, zip(repeat(kind), repeat(vehicles), nu.tolist(), s.tolist(),
-                                                  (nu * nu / s).tolist(), repeat(True), prns[order].tolist())))
+            return _accepted_infos(kind, repeat(vehicles), nu, s, prns[order].tolist())
         out = []
         accepted = kernels.ACCEPTED
         for o, nuk, sk, stk in zip(prns[order].tolist(), nu.tolist(), s.tolist(), st.tolist(), strict=True):
