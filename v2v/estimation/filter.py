@@ -287,7 +287,7 @@ def screen_blunders_status(h: F64, r: F64, sigma: float, k: float) -> tuple[NDAr
     because all remaining ``|w| <= k``; False when it stopped at redundancy < 2 or at a
     singular geometry (a fault may remain), or never had redundancy >= 2."""
     # compiled (v2v.estimation.kernels.screen_blunders): per iteration N = H^T H, its
-    # condition number (SVD), N^-1 H^T, the residuals and w of the remaining measurements
+    # condition number (ratio of its extreme eigenvalues), N^-1 H^T (Cholesky), the residuals and w of the remaining measurements
     flagged, isolated = kernels.screen_blunders(np.ascontiguousarray(h, dtype=np.float64),
                                                 np.ascontiguousarray(r, dtype=np.float64), float(sigma), float(k))
     return flagged, bool(isolated)
