@@ -54,6 +54,35 @@ def test_production_records_match_reference_field_by_field():
     assert n_rec > 1000
 
 
+def test_records_and_counters_match_with_unusable_measurements():
+    """The bulk paths' fall-backs: a non-finite SD Doppler (that vehicle's satellite left out
+    and counted, the all-vehicle gathers rebuilt), a non-finite UWB range and one naming an
+    unknown radio (the per-range usability checks count them), UWB ranges deferred as too
+    nonlinear while P is still large (counted, no record). Records field by field and every
+    counter must equal the reference engine's, which takes the Python path for each."""
+    cfg = FilterConfig()
+    scn = SimScenario(n_vehicles=4, duration_s=2.0, turn_rate_rps=0.05, bearing_vehicles=("lead",))
+    ids = vehicle_ids(4)
+    lay = StateLayout.build(lead="lead", vehicles=ids[1:], azimuth_vehicles=("lead",))
+    eps = simulate(scn, cfg, np.random.default_rng(8))
+    eps[6].gnss["v2"].doppler_mps[1] = np.nan
+    eps[9].gnss["lead"].doppler_mps[0] = np.inf
+    u = next(ep.uwb for ep in eps[5:] if ep.uwb is not None and ep.uwb.n >= 2)
+    u.range_m[0] = np.nan
+    u2 = next(ep.uwb for ep in eps[12:] if ep.uwb is not None and ep.uwb.n >= 2)
+    object.__setattr__(u2, "b", ("nobody", *u2.b[1:]))
+    prod, ref = ClusterEkf(lay, cfg), ReferenceClusterEkf(lay, cfg)
+    for (_, ip), (_, ir) in zip(run_filter(prod, eps, scn.dt_s), run_filter(ref, eps, scn.dt_s), strict=True):
+        assert [(a.kind, a.vehicles, a.prn, a.accepted) for a in ip] == [(b.kind, b.vehicles, b.prn, b.accepted)
+                                                                         for b in ir]
+        for a, b in zip(ip, ir, strict=True):
+            assert abs(a.innovation - b.innovation) <= 1e-9 * np.sqrt(b.variance)
+    assert prod.counters == ref.counters
+    assert prod.counters["nonfinite_sd_doppler"] >= 2  # v2's own, and every vehicle's SD with the lead's
+    assert prod.counters["nonfinite_uwb"] == 1 and prod.counters["uwb_unknown_vehicle"] == 1
+    assert prod.counters.get("uwb_deferred_nonlinear", 0) >= 1
+
+
 def _info(kind: str, veh: tuple[str, ...], nis: float, ok: bool, prn: int = -1) -> UpdateInfo:
     return UpdateInfo(kind, veh, np.sqrt(nis), 1.0, nis, ok, prn)
 

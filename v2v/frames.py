@@ -98,9 +98,10 @@ def ecef_to_geodetic_point(x_m: float, y_m: float, z_m: float) -> tuple[float, f
 
 
 def ecef_to_enu_rotation(lat_rad: float, lon_rad: float) -> FloatArray:
-    """Rotation matrix ``R`` with ``enu = R @ (ecef - ecef_ref)``."""
-    sl, cl = np.sin(lat_rad), np.cos(lat_rad)
-    so, co = np.sin(lon_rad), np.cos(lon_rad)
+    """Rotation matrix ``R`` with ``enu = R @ (ecef - ecef_ref)`` at one point (scalar
+    ``math`` sines and cosines: several are built per epoch)."""
+    sl, cl = math.sin(lat_rad), math.cos(lat_rad)
+    so, co = math.sin(lon_rad), math.cos(lon_rad)
     return np.array(
         [
             [-so, co, 0.0],

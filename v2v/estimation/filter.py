@@ -84,8 +84,8 @@ from collections import deque
 from collections.abc import Iterable, Sequence
 from dataclasses import dataclass, field
 from functools import partial
-from itertools import repeat
-from operator import itemgetter
+from itertools import compress, repeat
+from operator import eq, itemgetter
 from typing import NamedTuple
 
 import numpy as np
@@ -320,6 +320,8 @@ class ClusterFilterBase(ABC):
         self.phase_status: dict[str, PhaseStatus] = {}
         #: vehicles whose last GNSS epoch gave fewer than 4 accepted SD pseudoranges
         self.gnss_weak: dict[str, bool] = {}
+        self._starts: dict[str, int] = {}
+        self._starts_of: StateLayout | None = None
         x0, p0 = self._prior(layout)
         self._replace(x0, p0)
 
@@ -415,8 +417,14 @@ class ClusterFilterBase(ABC):
         infos: list[UpdateInfo] = []
         just_initialized: set[str] = set()
         self.integrity_available = dict.fromkeys(lay.vehicles, False)
-        for v in lay.vehicles:  # covariance growth beyond any use: start again from this snapshot
-            if self._vehicle_ready[v] and self._position_sigma_m(v) > self.config.divergence_position_sigma_m:
+        # covariance growth beyond any use: start again from this snapshot (a reset erases only
+        # its own block, so all vehicles' sigmas are read first: _position_sigma_m of each)
+        ready = [v for v in lay.vehicles if self._vehicle_ready[v]]
+        if ready:
+            i = np.fromiter(map(self._position_start, ready), dtype=np.int64, count=len(ready))
+            d = np.diagonal(self._get_P())
+            sig = np.sqrt(np.maximum(d[i] + d[i + 1] + d[i + 2], 0.0))
+            for v in compress(ready, (sig > self.config.divergence_position_sigma_m).tolist()):
                 self._reset_vehicle(v)
         per_vehicle: dict[str, tuple[GnssEpoch, NDArray, NDArray, F64]] = {}
         pr_jobs: list[tuple[str, GnssEpoch, NDArray, NDArray]] = []  # ready vehicles: (v, epoch, iv, il)
@@ -730,6 +738,13 @@ class ClusterFilterBase(ABC):
         n_rej = len(w) - sum(map(itemgetter(1), w))  # = the tests with ok False
         return n_rej > self.config.divergence_reject_fraction * len(w)
 
+    def _position_start(self, v: str) -> int:
+        """``layout.position(v).start`` (cached per layout)."""
+        lay = self.layout
+        if self._starts_of is not lay:
+            self._starts, self._starts_of = {u: lay.position(u).start for u in lay.vehicles}, lay
+        return self._starts[v]
+
     def _position_sigma_m(self, v: str) -> float:
         i = self.layout.position(v).start
         P = self._get_P()
@@ -951,9 +966,13 @@ class ClusterFilterBase(ABC):
     def _usable_pairs(self, kind: str, a: tuple[str, ...], b: tuple[str, ...], z: F64) -> list[int]:
         """Indices of the measurements that pass :meth:`_pair_usable` (which counts the others)."""
         lay = self.layout
-        known = {lay.lead, *lay.vehicles}
         ready = {lay.lead, *(v for v in lay.vehicles if self._vehicle_ready.get(v, False))}
-        zl = np.asarray(z, dtype=float).tolist()
+        zf = np.asarray(z, dtype=float)
+        # the usual case, tested on whole tuples at C speed: every measurement usable
+        if ready.issuperset(a) and ready.issuperset(b) and not any(map(eq, a, b)) and np.isfinite(zf).all():
+            return list(range(len(a)))
+        known = {lay.lead, *lay.vehicles}
+        zl = zf.tolist()
         isfinite = math.isfinite
         # fast path: finite, both known and initialized, a != b; the rest through _pair_usable (counts why)
         return [k for k, zk in enumerate(zl)
@@ -1243,19 +1262,58 @@ def _cati(parts: list[NDArray]) -> NDArray[np.int64]:
     return np.concatenate(parts, dtype=np.int64, casting="same_kind")
 
 
-def _all_accepted_records(kind: str, vehicles: list[str], moff: NDArray[np.int64], order: NDArray[np.int64], nu: F64,
-                          s: F64, st: NDArray[np.int64], prns: list[NDArray], row0: NDArray[np.int64],
-                          iv_cat: NDArray[np.int64]) -> list[UpdateInfo] | None:
-    """The records of an all-vehicle GNSS kernel call (outputs sliced by ``moff``, ``order``
+def _all_accepted_records(kind: str, vehicles: list[str], bat: _GnssBatch, order: NDArray[np.int64], nu: F64,
+                          s: F64, st: NDArray[np.int64]) -> list[UpdateInfo] | None:
+    """The records of an all-vehicle GNSS kernel call (outputs sliced by ``bat.moff``, ``order``
     local to each vehicle) when every measurement was accepted, as ``ClusterEkf._records``
     builds them vehicle by vehicle; None if any was not (then the per-vehicle path counts why)."""
     if np.count_nonzero(st):
         return None
-    counts = np.diff(moff)
-    jrep = np.repeat(np.arange(len(vehicles)), counts)
-    prn = _cati(prns)[row0[jrep] + iv_cat[moff[jrep] + order]]  # satellite of each output: prns[j][iv_j[order]]
-    veh = itertools.chain.from_iterable(map(repeat, [(v,) for v in vehicles], counts.tolist()))
+    jrep = bat.vehicle_of
+    prn = bat.prn_cat[bat.row0[jrep] + bat.iv_cat[bat.moff[jrep] + order]]  # satellite of each output: prns[j][iv_j[order]]
+    veh = itertools.chain.from_iterable(map(repeat, [(v,) for v in vehicles], np.diff(bat.moff).tolist()))
     return _accepted_infos(kind, veh, nu, s, prn.tolist())
+
+
+class _GnssBatch:
+    """The concatenated gathers of one epoch's all-vehicle GNSS kernel call: per job
+    ``(v, epoch, iv, il)`` its receiver's rows start at ``row0[j]``, its common satellites are
+    ``iv_cat[moff[j]:moff[j+1]]`` (into its rows) and ``il_cat[...]`` (into the lead's);
+    ``sv_cat`` the receivers' satellite positions one after another. Built once for the SD
+    pseudoranges and reused by the SD Dopplers when their jobs are the same objects."""
+
+    __slots__ = ("lead_ep", "jobs", "row0", "moff", "iv_cat", "il_cat", "sv_cat", "_vehicle_of", "_prn_cat")
+
+    @classmethod
+    def of(cls, lead_ep: GnssEpoch, jobs: list[tuple[str, GnssEpoch, NDArray, NDArray]]) -> _GnssBatch:
+        b = cls()
+        b.lead_ep, b.jobs = lead_ep, list(jobs)
+        b.row0 = _offsets([len(ep.prn) for _, ep, _, _ in jobs])
+        b.moff = _offsets([len(iv) for _, _, iv, _ in jobs])
+        b.iv_cat = _cati([iv for _, _, iv, _ in jobs])
+        b.il_cat = _cati([il for _, _, _, il in jobs])
+        b.sv_cat = _cat3([ep.sv_pos_ecef_m for _, ep, _, _ in jobs])
+        b._vehicle_of = b._prn_cat = None
+        return b
+
+    def same(self, lead_ep: GnssEpoch, jobs: list[tuple[str, GnssEpoch, NDArray, NDArray]]) -> bool:
+        """Built from these very objects (identity: the batch holds them, so none was reused)."""
+        return lead_ep is self.lead_ep and len(jobs) == len(self.jobs) and all(
+            v == w and ep is e and iv is i and il is k for (v, ep, iv, il), (w, e, i, k) in zip(jobs, self.jobs, strict=True))
+
+    @property
+    def vehicle_of(self) -> NDArray[np.int64]:
+        """Job index of each gathered measurement."""
+        if self._vehicle_of is None:
+            self._vehicle_of = np.repeat(np.arange(len(self.jobs)), np.diff(self.moff))
+        return self._vehicle_of
+
+    @property
+    def prn_cat(self) -> NDArray[np.int64]:
+        """The receivers' satellite numbers one after another (rows like ``sv_cat``)."""
+        if self._prn_cat is None:
+            self._prn_cat = _cati([ep.prn for _, ep, _, _ in self.jobs])
+        return self._prn_cat
 
 
 class ClusterEkf(ClusterFilterBase):
@@ -1289,12 +1347,21 @@ class ClusterEkf(ClusterFilterBase):
         # kernel indices: position-slice start per vehicle (-1 = lead at the origin)
         self._pos0 = {v: lay.position(v).start for v in lay.vehicles}
         self._pos0[lay.lead] = -1
+        self._clk = {v: lay.clock(v) for v in lay.vehicles}  # kernel indices per vehicle (as the layout's)
+        self._vel0 = {v: lay.velocity(v).start for v in lay.vehicles}
+        self._drift = {v: lay.drift(v) for v in lay.vehicles}
+        self._last_batch: _GnssBatch | None = None
         self._az_index = {v: lay.azimuth(v) for v in lay.azimuth_vehicles}
         pc = self.config.process  # kernels.predict_all's parameter vectors
         self._vpar = np.array([pc.vel_tau_s, pc.vel_sigma_horizontal_mps, pc.vel_sigma_vertical_mps, pc.drift_tau_s,
                                pc.drift_sigma_mps, pc.clock_bias_psd_m2ps])
         self._apar = np.array([pc.yaw_rate_tau_s, pc.yaw_rate_sigma_rps, pc.azimuth_rw_rad_per_sqrt_s**2])
         self._fq_scratch = (np.empty((8, 8)), np.empty((8, 8)), np.empty((2, 2)), np.empty((2, 2)))
+
+    @staticmethod
+    def _indices(index: dict[str, int], names: list[str]) -> NDArray[np.int64]:
+        """``index[v]`` of each name, as an int64 array."""
+        return np.fromiter(map(index.__getitem__, names), dtype=np.int64, count=len(names))
 
     def _get_x(self) -> F64:
         return self._x
@@ -1355,9 +1422,17 @@ class ClusterEkf(ClusterFilterBase):
         """(range index of each record, the records) of a UWB kernel's output (counters as :meth:`_record`)."""
         n_rec, kind, meas, nu, s, st = recs
         nu, s, st, meas = nu[:n_rec], s[:n_rec], st[:n_rec], meas[:n_rec].tolist()
-        if not st.any() and not kind[:n_rec].any():  # all accepted ranges (ACCEPTED == REC_UWB == 0): no counters
-            ab = list(zip(a_list, b_list, strict=True))
-            return meas, _accepted_infos(KIND_UWB, map(ab.__getitem__, meas), nu, s, repeat(-1))
+        if not kind[:n_rec].any():  # ranges only (REC_UWB == 0), no constraint records
+            deferred = st == kernels.DEFERRED
+            n_def = int(np.count_nonzero(deferred))
+            if np.count_nonzero(st) == n_def:  # all accepted (ACCEPTED == 0) or deferred (a counter, no record)
+                if n_def:
+                    self.counters["uwb_deferred_nonlinear"] = self.counters.get("uwb_deferred_nonlinear", 0) + n_def
+                    keep = ~deferred
+                    meas = list(compress(meas, keep.tolist()))
+                    nu, s = nu[keep], s[keep]
+                ab = list(zip(a_list, b_list, strict=True))
+                return meas, _accepted_infos(KIND_UWB, map(ab.__getitem__, meas), nu, s, repeat(-1))
         ks, out = [], []
         for kd, k, nuk, sk, stk in zip(kind[:n_rec].tolist(), meas, nu.tolist(), s.tolist(), st.tolist(), strict=True):
             if kd == kernels.REC_UWB:
@@ -1435,19 +1510,16 @@ class ClusterEkf(ClusterFilterBase):
         clock-jump, screen and batch kernels in the same order, on one shared deferred-update
         buffer); counters, NIS windows and records as there."""
         cfg = self.config
-        lay = self.layout
-        row0, moff = _offsets([len(ep.prn) for _, ep, _, _ in jobs]), _offsets([len(iv) for _, _, iv, _ in jobs])
-        iv_cat = _cati([iv for *_, iv, _ in jobs])
+        names = [v for v, *_ in jobs]
+        bat = _GnssBatch.of(lead_ep, jobs)
+        self._last_batch = bat  # the epoch's Doppler call reuses the gathers when its jobs are the same
         jump, isolated, n_flagged, order, nu, s, st = kernels.sd_pseudorange_vehicles(
-            self._x, self._P, geo.base_ecef_m, geo.rot_ecef_to_enu,
-            np.array([self._pos0[v] for v, *_ in jobs], dtype=np.int64),
-            np.array([lay.clock(v) for v, *_ in jobs], dtype=np.int64),
-            _cat3([ep.sv_pos_ecef_m for _, ep, _, _ in jobs]), _cat1([ep.pseudorange_m for _, ep, _, _ in jobs]),
-            row0, _c3(lead_ep.sv_pos_ecef_m), _c1(lead_ep.pseudorange_m),
-            iv_cat, _cati([il for *_, il in jobs]), moff,
+            self._x, self._P, geo.base_ecef_m, geo.rot_ecef_to_enu, self._indices(self._pos0, names),
+            self._indices(self._clk, names), bat.sv_cat, _cat1([ep.pseudorange_m for _, ep, _, _ in jobs]),
+            bat.row0, _c3(lead_ep.sv_pos_ecef_m), _c1(lead_ep.pseudorange_m), bat.iv_cat, bat.il_cat, bat.moff,
             cfg.noise.sd_pseudorange_var_m2, self._k, cfg.clock_jump_detection, cfg.clock_reset_sigma_m**2)
-        recs_all = _all_accepted_records(KIND_SD_PR, [v for v, *_ in jobs], moff, order, nu, s, st,
-                                         [ep.prn for _, ep, _, _ in jobs], row0, iv_cat)
+        moff = bat.moff
+        recs_all = _all_accepted_records(KIND_SD_PR, names, bat, order, nu, s, st)
         out: list[UpdateInfo] = []
         mo = moff.tolist()
         for j, ((v, ep, iv, _), jp, iso, nf) in enumerate(zip(jobs, jump.tolist(), isolated.tolist(), n_flagged.tolist(),
@@ -1470,33 +1542,35 @@ class ClusterEkf(ClusterFilterBase):
         """:meth:`ClusterFilterBase._sd_dopplers` of every vehicle in one compiled call
         (:func:`v2v.estimation.kernels.sd_doppler_vehicles`); satellites with a non-finite
         Doppler are left out (and counted) first, as there."""
-        kept = []
-        for v, ep, iv, il in jobs:
-            zd = ep.doppler_mps[iv] - lead_ep.doppler_mps[il]
-            ok = np.isfinite(zd)  # = both Dopplers finite (a difference of finite values is finite)
-            if not ok.all():
+        bat = self._last_batch
+        if bat is None or not bat.same(lead_ep, jobs):
+            bat = _GnssBatch.of(lead_ep, jobs)
+        # SD Dopplers of all vehicles: d_v[iv] - d_lead[il], gathered from the concatenated rows
+        zd = _cat1([ep.doppler_mps for _, ep, _, _ in jobs])[bat.row0[bat.vehicle_of] + bat.iv_cat] \
+            - np.asarray(lead_ep.doppler_mps, dtype=np.float64)[bat.il_cat]
+        if np.isfinite(zd).all():  # (= both Dopplers finite: a difference of finite values is finite)
+            kept = [(v, ep, iv, il) for v, ep, iv, il in jobs]
+        else:  # leave out (and count) the satellites with a non-finite Doppler, vehicle by vehicle
+            kept = []
+            for v, ep, iv, il in jobs:
                 ok = np.isfinite(ep.doppler_mps[iv]) & np.isfinite(lead_ep.doppler_mps[il])
                 for _ in range(int((~ok).sum())):
                     self._count(f"nonfinite_{KIND_SD_DOPPLER}")
-                iv, il, zd = iv[ok], il[ok], zd[ok]
-            kept.append((v, ep, iv, il, zd))
-        lay = self.layout
-        row0, moff = _offsets([len(ep.prn) for _, ep, *_ in kept]), _offsets([len(iv) for _, _, iv, _, _ in kept])
-        iv_cat = _cati([k[2] for k in kept])
+                kept.append((v, ep, iv[ok], il[ok]))
+            bat = _GnssBatch.of(lead_ep, kept)
+            zd = _cat1([ep.doppler_mps[iv] - lead_ep.doppler_mps[il] for _, ep, iv, il in kept])
+        names = [v for v, *_ in kept]
+        moff = bat.moff
         n_flagged, order, nu, s, st = kernels.sd_doppler_vehicles(
             self._x, self._P, geo.base_ecef_m, geo.base_vel_ecef_mps, geo.rot_ecef_to_enu,
-            np.array([self._pos0[v] for v, *_ in kept], dtype=np.int64),
-            np.array([lay.velocity(v).start for v, *_ in kept], dtype=np.int64),
-            np.array([lay.drift(v) for v, *_ in kept], dtype=np.int64),
-            _cat3([ep.sv_pos_ecef_m for _, ep, *_ in kept]), _cat3([ep.sv_vel_ecef_mps for _, ep, *_ in kept]), row0,
-            _c3(lead_ep.sv_pos_ecef_m), _c3(lead_ep.sv_vel_ecef_mps), _cat1([k[4] for k in kept]),
-            iv_cat, _cati([k[3] for k in kept]), moff,
+            self._indices(self._pos0, names), self._indices(self._vel0, names), self._indices(self._drift, names),
+            bat.sv_cat, _cat3([ep.sv_vel_ecef_mps for _, ep, _, _ in kept]), bat.row0,
+            _c3(lead_ep.sv_pos_ecef_m), _c3(lead_ep.sv_vel_ecef_mps), zd, bat.iv_cat, bat.il_cat, moff,
             self.config.noise.sd_doppler_var_m2ps2, self._k)
-        recs_all = _all_accepted_records(KIND_SD_DOPPLER, [k[0] for k in kept], moff, order, nu, s, st,
-                                         [k[1].prn for k in kept], row0, iv_cat)
+        recs_all = _all_accepted_records(KIND_SD_DOPPLER, names, bat, order, nu, s, st)
         out: list[UpdateInfo] = []
         mo = moff.tolist()
-        for j, ((v, ep, iv, _, _), nf) in enumerate(zip(kept, n_flagged.tolist(), strict=True)):
+        for j, ((v, ep, iv, _), nf) in enumerate(zip(kept, n_flagged.tolist(), strict=True)):
             if nf:
                 self.counters["screened_first_update"] = self.counters.get("screened_first_update", 0) + nf
             a, b = mo[j], mo[j + 1]

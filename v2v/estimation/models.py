@@ -28,7 +28,7 @@ from numpy.typing import NDArray
 
 from v2v.estimation import kernels
 from v2v.estimation.layout import UWB, StateLayout, uwb_pair_key
-from v2v.frames import ecef_to_enu_rotation, ecef_to_geodetic, wrap_angle
+from v2v.frames import ecef_to_enu_rotation, ecef_to_geodetic_point, wrap_angle
 from v2v.measmodels import (
     bearing_rad,
     range_jacobian,
@@ -66,8 +66,8 @@ class GnssGeometry:
         b = np.asarray(self.base_ecef_m, dtype=float).reshape(3)
         object.__setattr__(self, "base_ecef_m", b)
         object.__setattr__(self, "base_vel_ecef_mps", np.asarray(self.base_vel_ecef_mps, dtype=float).reshape(3))
-        lat, lon, _ = ecef_to_geodetic(b)
-        object.__setattr__(self, "rot_ecef_to_enu", ecef_to_enu_rotation(float(lat), float(lon)))
+        lat, lon, _ = ecef_to_geodetic_point(*b.tolist())  # one point: scalar math, not array ufuncs
+        object.__setattr__(self, "rot_ecef_to_enu", ecef_to_enu_rotation(lat, lon))
 
     def abs_position(self, rel_enu_m: F64) -> F64:
         """ECEF position of a vehicle at relative ENU position ``rel_enu_m``."""
