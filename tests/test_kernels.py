@@ -20,6 +20,7 @@ import numpy as np
 import pytest
 
 from v2v.estimation import kernels
+from v2v.estimation.filter import cond_sym
 from v2v.frames import wrap_angle
 
 R_UWB = 0.5**2
@@ -458,6 +459,29 @@ def test_screen_blunders_flags_what_data_snooping_flags(n_blunders):
         assert found >= 190
     if n_blunders <= 1:
         assert clean_flags <= max(3, 0.01 * total_clean)
+
+
+def test_cond_sym_equals_numpy_cond_to_round_off():
+    """Symmetric positive (semi-)definite 3x3 to 6x6 matrices with condition numbers 1 to 1e14
+    (Q diag(lambda) Q^T, lambda chosen): the Jacobi-based condition number equals
+    np.linalg.cond (SVD) and the constructed lambda_max / lambda_min. Both know the smallest
+    eigenvalue only to ~eps * lambda_max, so they agree to a relative ~eps * cond (1e-13 * cond
+    allowed: a few hundred eps of the matrix scale). Singular or non-finite: inf."""
+    rng = np.random.default_rng(11)
+    for _ in range(300):
+        p = int(rng.integers(3, 7))
+        cond = 10.0 ** rng.uniform(0, 14)
+        lam = np.sort(np.exp(rng.uniform(0, np.log(cond), p)))
+        lam[0], lam[-1] = 1.0, cond
+        q, _ = np.linalg.qr(rng.normal(size=(p, p)))
+        a = (q * (lam * 10.0 ** rng.uniform(-6, 6))) @ q.T
+        a = 0.5 * (a + a.T)
+        got = cond_sym(a)
+        tol = 1e-13 * cond
+        assert abs(got / np.linalg.cond(a) - 1.0) <= tol
+        assert abs(got / cond - 1.0) <= tol
+    assert cond_sym(np.diag([1.0, 2.0, 0.0])) == np.inf
+    assert cond_sym(np.array([[1.0, np.nan], [np.nan, 1.0]])) == np.inf
 
 
 def test_screen_blunders_singular_geometry_is_not_isolated():

@@ -20,6 +20,7 @@ from v2v.estimation.filter import ClusterEkf, FilterConfig, UpdateInfo
 from v2v.estimation.layout import StateLayout
 from v2v.estimation.reference import ReferenceClusterEkf
 from v2v.estimation.simulate import SimScenario, run_filter, simulate, vehicle_ids
+from v2v.frames import ecef_to_enu_rotation, ecef_to_geodetic
 from v2v.metrics.summary import update_kind_statistics
 from v2v.pipeline import UpdateLog
 
@@ -81,6 +82,41 @@ def test_records_and_counters_match_with_unusable_measurements():
     assert prod.counters["nonfinite_sd_doppler"] >= 2  # v2's own, and every vehicle's SD with the lead's
     assert prod.counters["nonfinite_uwb"] == 1 and prod.counters["uwb_unknown_vehicle"] == 1
     assert prod.counters.get("uwb_deferred_nonlinear", 0) >= 1
+
+
+def test_pair_sds_are_the_satellites_the_lead_misses_seen_by_two_or_more():
+    """SDs between two non-lead vehicles (``use_pair_sd``) written out from the epochs: for
+    every satellite with no finite pseudorange at the lead but a finite one at >= 2 ready
+    vehicles, one SD per further vehicle against the first (layout order) that sees it, the
+    satellites by the first one's elevation, highest first."""
+    cfg = FilterConfig()
+    scn = SimScenario(n_vehicles=4, duration_s=2.0, turn_rate_rps=0.05, lead_blocked_prns=(3, 7))
+    ids = vehicle_ids(4)
+    lay = StateLayout.build(lead="lead", vehicles=ids[1:])
+    eps = simulate(scn, cfg, np.random.default_rng(5))
+    eps[8].gnss["v1"].pseudorange_m[np.flatnonzero(eps[8].gnss["v1"].prn == 3)] = np.nan  # v2 is the reference then
+    ekf = ClusterEkf(lay, cfg)
+    n_pairs = 0
+    for k, (ep, infos) in enumerate(run_filter(ekf, eps, scn.dt_s)):
+        if k < 2 or ep.gnss is None:
+            continue
+        assert all(ekf.is_initialized(v) for v in ids[1:])
+        lead = ep.gnss["lead"]
+        lead_ok = set(lead.prn[np.isfinite(lead.pseudorange_m)].tolist())
+        expected = []
+        for prn in sorted({p for v in ids[1:] for p in ep.gnss[v].prn.tolist()} - lead_ok):
+            have = [v for v in ids[1:] if np.isfinite(ep.gnss[v].pseudorange_m[ep.gnss[v].prn == prn]).any()]
+            if len(have) >= 2:
+                ref = ep.gnss[have[0]]
+                lat, lon, _ = ecef_to_geodetic(ep.lead_base_ecef_m)  # elevation at the lead base
+                up = ecef_to_enu_rotation(float(lat), float(lon))[2]
+                d = ref.sv_pos_ecef_m[ref.prn == prn][0] - ep.lead_base_ecef_m
+                expected.append((-float(np.arcsin(up @ d / np.linalg.norm(d))), [(a, have[0], prn) for a in have[1:]]))
+        want = [t for _, ts in sorted(expected, key=lambda e: e[0]) for t in ts]
+        got = [(*i.vehicles, i.prn) for i in infos if i.kind == "sd_pseudorange_pair"]
+        assert got == want
+        n_pairs += len(got)
+    assert n_pairs >= 20
 
 
 def _info(kind: str, veh: tuple[str, ...], nis: float, ok: bool, prn: int = -1) -> UpdateInfo:

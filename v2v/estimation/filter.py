@@ -293,6 +293,18 @@ def screen_blunders_status(h: F64, r: F64, sigma: float, k: float) -> tuple[NDAr
     return flagged, bool(isolated)
 
 
+def cond_sym(a: F64) -> float:
+    """2-norm condition number of a small symmetric matrix: ``np.linalg.cond(a)`` (the ratio
+    of its extreme singular values = absolute eigenvalues) to round-off, from compiled Jacobi
+    rotations (:func:`v2v.estimation.kernels.sym_abs_eig_extremes`) instead of an SVD; inf
+    when ``a`` is singular or not finite."""
+    a = np.ascontiguousarray(a, dtype=np.float64)
+    if not np.isfinite(a).all():
+        return math.inf
+    hi, lo = kernels.sym_abs_eig_extremes(a, np.empty_like(a))
+    return hi / lo if lo > 0.0 else math.inf
+
+
 class ClusterFilterBase(ABC):
     """Sequencing, gating and initialization shared by both engines.
 
@@ -838,17 +850,21 @@ class ClusterFilterBase(ABC):
         ready = [v for v in lay.vehicles if self._vehicle_ready[v] and v in epochs]
         if len(ready) < 2:
             return []
-        lead_seen = set()
+        lead_seen = np.zeros(0, dtype=np.int64)
         if lead_ep is not None:
-            lead_seen = set(lead_ep.prn[np.isfinite(lead_ep.pseudorange_m)].tolist())
+            lead_seen = lead_ep.prn[np.isfinite(lead_ep.pseudorange_m)]
+        # candidates of all ready vehicles at once: finite, a satellite the lead does not see
+        prn_cat = _cati([epochs[v].prn for v in ready])
+        cand = np.flatnonzero(np.isfinite(_cat1([epochs[v].pseudorange_m for v in ready]))
+                              & ~np.isin(prn_cat, lead_seen))
+        if len(cand) < 2:
+            return []
+        row0 = _offsets([len(epochs[v].prn) for v in ready])
+        veh = np.searchsorted(row0, cand, side="right") - 1
         # prn -> list of (vehicle, index), vehicles in layout order
         seen: dict[int, list[tuple[str, int]]] = {}
-        for v in ready:
-            ep = epochs[v]
-            for i, prn, ok in zip(range(len(ep.prn)), ep.prn.tolist(), np.isfinite(ep.pseudorange_m).tolist(),
-                                  strict=True):
-                if ok and prn not in lead_seen:
-                    seen.setdefault(prn, []).append((v, i))
+        for j, r, prn in zip(veh.tolist(), cand.tolist(), prn_cat[cand].tolist(), strict=True):
+            seen.setdefault(prn, []).append((ready[j], r - int(row0[j])))
         jobs = []
         for prn, lst in seen.items():
             if len(lst) < 2:
@@ -891,7 +907,7 @@ class ClusterFilterBase(ABC):
             if it == 2:  # screen once the linearization point is good
                 use = ~screen_blunders(h, res, sig_pr, self._k)
             n_mat = h[use].T @ h[use]
-            if use.sum() < 4 or np.linalg.cond(n_mat) > 1e10:
+            if use.sum() < 4 or cond_sym(n_mat) > 1e10:
                 self._count("init_bad_geometry")
                 return False
             xt[pc] += np.linalg.solve(n_mat, h[use].T @ res[use])
@@ -916,7 +932,7 @@ class ClusterFilterBase(ABC):
             rd = zd - hd_pred
             used = ~screen_blunders(hd, rd, sig_d, self._k)
             nd = hd[used].T @ hd[used]
-            if used.sum() >= 4 and np.linalg.cond(nd) < 1e10:
+            if used.sum() >= 4 and cond_sym(nd) < 1e10:
                 # linear in velocity and drift (the tiny position term is held at the PR fix)
                 mean[[3, 4, 5, 7]] = np.linalg.solve(nd, hd[used].T @ rd[used])
                 cov[np.ix_([3, 4, 5, 7], [3, 4, 5, 7])] = sig_d**2 * np.linalg.inv(nd)

@@ -1134,7 +1134,7 @@ def uwb_event_run(x, P, dts, starts, sa, sb, ib, isc, z, r_var, gate_k, nl_frac,
 
 
 @njit(**_JIT)
-def _sym_eig_extremes(a, out_scratch):
+def sym_abs_eig_extremes(a, out_scratch):
     """(largest, smallest) |eigenvalue| of the small symmetric matrix ``a`` (cyclic Jacobi
     rotations on a copy until the off-diagonal part is below 1e-15 of the diagonal's scale:
     Golub & Van Loan, Matrix Computations, 4th ed., algorithm 8.5.3). For the 4 x 4 normal
@@ -1219,7 +1219,7 @@ def screen_blunders(h, r, sigma, k):
 
     ``h`` (m, p) design matrix, ``r`` (m,) residuals. While the redundancy is >= 2: form
     ``N = H^T H`` (stop, not isolated, if ``cond(N) > 1e12`` or not finite: the ratio of
-    its extreme eigenvalues, :func:`_sym_eig_extremes`), ``N^-1 H^T`` by Cholesky,
+    its extreme eigenvalues, :func:`sym_abs_eig_extremes`), ``N^-1 H^T`` by Cholesky,
     ``e = r - H N^-1 H^T r``, ``Q_e,ii = 1 - (H N^-1 H^T)_ii``,
     ``w_i = |e_i| / (sigma sqrt(Q_e,ii))`` (MacGougan (2009) section 3.5.1); stop
     (isolated) if ``max w <= k``, else flag the largest. Small fixed-size linear algebra
@@ -1260,7 +1260,7 @@ def screen_blunders(h, r, sigma, k):
                     finite = False
         if not finite:
             return flagged, False
-        hi, lo = _sym_eig_extremes(n_mat, scratch)
+        hi, lo = sym_abs_eig_extremes(n_mat, scratch)
         if not hi <= 1e12 * lo:  # cond(N) = hi / lo > 1e12 (or lo = 0)
             return flagged, False
         if not _cholesky_solve_into(n_mat, hut[:, :c], sol[:, :c], lfac):
