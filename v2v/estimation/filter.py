@@ -850,13 +850,13 @@ class ClusterFilterBase(ABC):
         ready = [v for v in lay.vehicles if self._vehicle_ready[v] and v in epochs]
         if len(ready) < 2:
             return []
-        lead_seen = np.zeros(0, dtype=np.int64)
+        lead_seen: set[int] = set()
         if lead_ep is not None:
-            lead_seen = lead_ep.prn[np.isfinite(lead_ep.pseudorange_m)]
+            lead_seen = set(lead_ep.prn[np.isfinite(lead_ep.pseudorange_m)].tolist())
         # candidates of all ready vehicles at once: finite, a satellite the lead does not see
         prn_cat = _cati([epochs[v].prn for v in ready])
-        cand = np.flatnonzero(np.isfinite(_cat1([epochs[v].pseudorange_m for v in ready]))
-                              & ~np.isin(prn_cat, lead_seen))
+        seen_by_lead = np.fromiter(map(lead_seen.__contains__, prn_cat.tolist()), dtype=np.bool_, count=len(prn_cat))
+        cand = np.flatnonzero(np.isfinite(_cat1([epochs[v].pseudorange_m for v in ready])) & ~seen_by_lead)
         if len(cand) < 2:
             return []
         row0 = _offsets([len(epochs[v].prn) for v in ready])
