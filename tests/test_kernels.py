@@ -552,6 +552,27 @@ def test_pair_satellites_is_intersect_finite_and_elevation_order():
     np.testing.assert_allclose(np.degrees(el), [50.0, 45.0, 20.0], atol=1e-9)
 
 
+def test_pair_satellites_all_vehicles_in_one_call():
+    """The case above for three vehicles in one call (the second sees nothing in common, the
+    third a subset in another order): per vehicle the same common satellites, counts and
+    elevation order, ``iv`` into the vehicle's own rows."""
+    rot, base = np.eye(3), np.zeros(3)
+    prn_lead = np.array([3, 7, 12, 19, 25, 30], dtype=np.int64)
+    el_deg = np.array([20.0, 70.0, 45.0, 10.0, 85.0, 50.0])
+    sv_lead = np.stack([np.cos(np.radians(el_deg)), np.zeros(6), np.sin(np.radians(el_deg))], axis=1) * 2e7
+    pr_lead = np.array([1.0, 2.0, 3.0, np.nan, 5.0, 6.0])
+    prns = [np.array([30, 25, 19, 12, 4, 3]), np.array([1, 2]), np.array([7, 25, 3])]
+    prs = [np.array([1.0, np.inf, 1.0, 1.0, 1.0, 1.0]), np.array([1.0, 1.0]), np.array([1.0, 1.0, 1.0])]
+    iv, il, el, moff, n_bad = kernels.pair_satellites_all(
+        np.concatenate(prns), np.concatenate(prs), np.array([0, 6, 8, 11]), prn_lead, pr_lead, sv_lead, base, rot)
+    np.testing.assert_array_equal(moff, [0, 3, 3, 6])
+    np.testing.assert_array_equal(n_bad, [2, 0, 0])
+    np.testing.assert_array_equal(prns[0][iv[0:3]], [30, 12, 3])
+    np.testing.assert_array_equal(prns[2][iv[3:6]], [25, 7, 3])  # 85, 70, 20 deg
+    np.testing.assert_array_equal(prn_lead[il], [30, 12, 3, 25, 7, 3])
+    np.testing.assert_allclose(np.degrees(el), [50.0, 45.0, 20.0, 85.0, 70.0, 20.0], atol=1e-9)
+
+
 def test_predict_with_the_process_model_f_is_f_p_ft_plus_q():
     """The process model's own vehicle-block F (position integrates velocity, clock integrates
     drift: the in-place fast path) and an [azimuth, rate] pair: dense F P F^T + Q (round-off)."""

@@ -444,15 +444,20 @@ class ClusterFilterBase(ABC):
             lead_prn = np.asarray(lead_ep.prn, dtype=np.int64)
             lead_pr = np.asarray(lead_ep.pseudorange_m, dtype=np.float64)
             lead_sv = np.ascontiguousarray(lead_ep.sv_pos_ecef_m, dtype=np.float64).reshape(-1, 3)
-        for v in lay.vehicles:
-            ep = epochs.get(v)
-            if ep is None or lead_ep is None:
-                continue
-            # common satellites (np.intersect1d order), finite pseudoranges, highest elevation first
-            iv, il, el, n_bad = kernels.pair_satellites(
-                np.asarray(ep.prn, dtype=np.int64), lead_prn, np.asarray(ep.pseudorange_m, dtype=np.float64),
-                lead_pr, lead_sv, geo.base_ecef_m, geo.rot_ecef_to_enu)
-            for _ in range(n_bad):
+        have = [v for v in lay.vehicles if v in epochs] if lead_ep is not None else []
+        if have:
+            # every vehicle's common satellites with the lead (np.intersect1d order), finite
+            # pseudoranges, highest elevation first: kernels.pair_satellites, all in one call
+            eps_v = [epochs[v] for v in have]
+            iv_cat, il_cat, el_cat, moff_v, bad_v = kernels.pair_satellites_all(
+                _cati([ep.prn for ep in eps_v]), _cat1([ep.pseudorange_m for ep in eps_v]),
+                _offsets([len(ep.prn) for ep in eps_v]), lead_prn, lead_pr, lead_sv, geo.base_ecef_m, geo.rot_ecef_to_enu)
+            mo = moff_v.tolist()
+        for j, v in enumerate(have):
+            ep = epochs[v]
+            a, b = mo[j], mo[j + 1]
+            iv, il, el = iv_cat[a:b], il_cat[a:b], el_cat[a:b]
+            for _ in range(int(bad_v[j])):
                 self._count(f"nonfinite_{KIND_SD_PR}")
             per_vehicle[v] = (ep, iv, il, el)
             if not self._vehicle_ready[v]:

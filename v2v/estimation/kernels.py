@@ -1504,6 +1504,35 @@ def pair_satellites(prn_v, prn_lead, pr_v, pr_lead, sv_lead, base, rot):
 
 
 @njit(**_JIT)
+def pair_satellites_all(prn_cat, pr_cat, row0, prn_lead, pr_lead, sv_lead, base, rot):
+    """:func:`pair_satellites` of several vehicles in one call: vehicle ``j``'s satellites are
+    rows ``row0[j]:row0[j+1]`` of ``prn_cat`` / ``pr_cat``. Returns ``(iv_cat, il_cat, el_cat,
+    moff, n_bad)``: vehicle ``j``'s ``(iv, il, el)`` are the slices ``moff[j]:moff[j+1]``
+    (``iv`` into its own rows), ``n_bad[j]`` its count."""
+    nveh = row0.shape[0] - 1
+    cap = 0
+    for j in range(nveh):
+        cap += min(row0[j + 1] - row0[j], prn_lead.shape[0])
+    iv_cat = np.empty(cap, dtype=np.int64)
+    il_cat = np.empty(cap, dtype=np.int64)
+    el_cat = np.empty(cap)
+    moff = np.zeros(nveh + 1, dtype=np.int64)
+    n_bad = np.zeros(nveh, dtype=np.int64)
+    for j in range(nveh):
+        a, b = row0[j], row0[j + 1]
+        iv, il, el, nb = pair_satellites(prn_cat[a:b], prn_lead, pr_cat[a:b], pr_lead, sv_lead, base, rot)
+        m = moff[j]
+        for i in range(iv.shape[0]):
+            iv_cat[m + i] = iv[i]
+            il_cat[m + i] = il[i]
+            el_cat[m + i] = el[i]
+        moff[j + 1] = m + iv.shape[0]
+        n_bad[j] = nb
+    k = moff[nveh]
+    return iv_cat[:k], il_cat[:k], el_cat[:k], moff, n_bad
+
+
+@njit(**_JIT)
 def ranges_from(p, sv):
     """``|sv_i - p|`` (m,) (:func:`v2v.measmodels.range_m`, same arithmetic)."""
     m = sv.shape[0]
