@@ -600,3 +600,21 @@ def test_predict_with_the_process_model_f_is_f_p_ft_plus_q():
     np.testing.assert_allclose(x, x_exp, rtol=1e-13, atol=1e-13)
     np.testing.assert_allclose(P, p_exp, rtol=1e-12, atol=1e-12)
     assert np.array_equal(P, P.T)
+
+
+@pytest.mark.parametrize("n", [20, 127, 128, 156, 316])
+def test_lazy_flush_is_p_minus_qt_q_and_exactly_symmetric(n):
+    """Both flush forms (one dgemm below 128 states, column panels from 128): P - Q^T Q of
+    the buffered rows (dense product: round-off of the ~kq-term sums, 1e-12 of the scale),
+    bit-for-bit symmetric; an empty buffer leaves P untouched."""
+    rng = np.random.default_rng(n)
+    P = _spd(rng, n, 1.0)
+    Q = rng.normal(size=(kernels.LAZY_RANK, n)) * 0.05
+    for kq in (0, 1, 7, kernels.LAZY_RANK):
+        p = P.copy()
+        assert kernels.lazy_flush(p, Q, kq) == 0
+        expected = P - Q[:kq].T @ Q[:kq]
+        np.testing.assert_allclose(p, expected, rtol=0, atol=1e-12 * np.abs(P).max())
+        assert np.array_equal(p, p.T)
+        if kq == 0:
+            assert np.array_equal(p, P)
