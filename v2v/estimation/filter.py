@@ -287,7 +287,8 @@ def screen_blunders_status(h: F64, r: F64, sigma: float, k: float) -> tuple[NDAr
     because all remaining ``|w| <= k``; False when it stopped at redundancy < 2 or at a
     singular geometry (a fault may remain), or never had redundancy >= 2."""
     # compiled (v2v.estimation.kernels.screen_blunders): per iteration N = H^T H, its
-    # condition number (ratio of its extreme eigenvalues), N^-1 H^T (Cholesky), the residuals and w of the remaining measurements
+    # condition number (ratio of its extreme eigenvalues), N^-1 H^T (Cholesky), the
+    # residuals and w of the remaining measurements
     flagged, isolated = kernels.screen_blunders(np.ascontiguousarray(h, dtype=np.float64),
                                                 np.ascontiguousarray(r, dtype=np.float64), float(sigma), float(k))
     return flagged, bool(isolated)
@@ -429,8 +430,9 @@ class ClusterFilterBase(ABC):
         infos: list[UpdateInfo] = []
         just_initialized: set[str] = set()
         self.integrity_available = dict.fromkeys(lay.vehicles, False)
-        # covariance growth beyond any use: start again from this snapshot (a reset erases only
-        # its own block, so all vehicles' sigmas are read first: _position_sigma_m of each)
+        # covariance growth beyond any use (position sigma = sqrt of the position block's trace
+        # above divergence_position_sigma_m): start again from this snapshot; a reset erases
+        # only its own block, so all vehicles' sigmas are read first
         ready = [v for v in lay.vehicles if self._vehicle_ready[v]]
         if ready:
             i = np.fromiter(map(self._position_start, ready), dtype=np.int64, count=len(ready))
@@ -761,12 +763,6 @@ class ClusterFilterBase(ABC):
         if self._starts_of is not lay:
             self._starts, self._starts_of = {u: lay.position(u).start for u in lay.vehicles}, lay
         return self._starts[v]
-
-    def _position_sigma_m(self, v: str) -> float:
-        i = self.layout.position(v).start
-        P = self._get_P()
-        tr = float(P[i, i]) + float(P[i + 1, i + 1]) + float(P[i + 2, i + 2])  # = np.trace, same order
-        return math.sqrt(max(tr, 0.0))
 
     def _reset_vehicle(self, v: str) -> None:
         """Back to the uninitialized prior; the next GNSS snapshot re-initializes the block."""
