@@ -2,14 +2,17 @@
 
 Configuration (issue 7): 10 Hz GNSS, UWB between all pairs at ~3 Hz, bearings from every
 vehicle, one GPS+UWB+Bearing solution, replay off and on, on `open_highway` (lanes 0-2;
-one lane for N <= 3). Each case runs in a fresh process, one after another, with BLAS and
-numba limited to one thread, so the numbers are single-core times measured in this one
-invocation. In that process two runs follow each other (libsumo: one simulation at a time):
-*cold*, the first run (it also loads the compiled kernels and pays the lazy imports: what
-a single ``v2v run`` pays), and *warm*, the next seed (the steady state of a sweep
-worker). Per run: wall time and stage breakdown (``summary.json`` ``wall_s``,
-``timing_s``) and CPU time; per process: the start-up (interpreter + imports, before
-``run_scenario``).
+one lane for N <= 3). Each cluster size runs in a fresh process, one after another, with
+BLAS and numba limited to one thread, so the numbers are single-core times measured in this
+one invocation. In that process the runs follow each other (libsumo: one simulation at a
+time): *cold*, the first run (replay off; it also loads the compiled kernels and pays the
+lazy imports: what a single ``v2v run`` pays), then ``--repeat`` pairs of *warm* runs (the
+steady state of a sweep worker), each pair one seed with the replay off and then on. Warm
+figures are the fastest of the repeats (the machine may be shared: the minimum is the least
+disturbed run), and the replay's share compares the fastest replay-on run with the fastest
+replay-off one of the same process. Per run: wall time and stage breakdown
+(``summary.json`` ``wall_s``, ``timing_s``) and CPU time; per process: the start-up
+(interpreter + imports, before ``run_scenario``).
 
 Monte Carlo (issue 7 item 3): ``--mc-runs`` runs of ``--mc-duration`` s at N = 3 (seeds
 1..mc-runs, same scenario) through the sweep machinery (:func:`v2v.sweep.run_study`: a
@@ -50,31 +53,42 @@ t_start = time.perf_counter()
 import json, sys
 from v2v.config.scenario import load_scenario
 from v2v.run import run_scenario
-n, replay, out = int(sys.argv[1]), sys.argv[2] == "1", sys.argv[3]
+n, replay_on, out, repeat = int(sys.argv[1]), sys.argv[2] == "1", sys.argv[3], int(sys.argv[5])
 ov = json.loads(sys.argv[4])
 sc = load_scenario(None, ov)
 t_imports = time.perf_counter() - t_start
-res = {"startup_s": t_imports}
-# cold: the first run of the process; warm: a second run (next seed) in the same process
-for tag, scn in (("cold", sc), ("warm", load_scenario(None, ov + [f"seed={sc.seed + 1}"]))):
+res = {"startup_s": t_imports, "warm_off": [], "warm_on": []}
+
+def one(scn, replay, tag):
     c0 = time.process_time()
-    r = run_scenario(scn, f"{out}_{tag}", quiet=True, replay=replay)
-    s = r.summary
-    res[tag] = {"simulated_s": s["simulated_s"], "wall_s": s["wall_s"], "cpu_s": time.process_time() - c0,
-                "timing_s": s["timing_s"]}
+    s = run_scenario(scn, f"{out}_{tag}", quiet=True, replay=replay).summary
+    return {"simulated_s": s["simulated_s"], "wall_s": s["wall_s"], "cpu_s": time.process_time() - c0,
+            "timing_s": s["timing_s"]}
+
+# cold: the first run of the process; warm: next seeds in the same process, replay off then on
+res["cold"] = one(sc, False, "cold")
+for k in range(repeat):
+    scn = load_scenario(None, ov + [f"seed={sc.seed + 1 + k}"])
+    res["warm_off"].append(one(scn, False, f"off{k}"))
+    if replay_on:
+        res["warm_on"].append(one(scn, True, f"on{k}"))
 print(json.dumps(res))
 """
 
 
-def run_case(n: int, duration: float, replay: bool, out: Path) -> dict:
+def run_case(n: int, duration: float, replay_on: bool, repeat: int, out: Path) -> dict:
     """One fresh process: start-up (interpreter + imports), a cold run (compiled kernels
-    loaded, lazy imports paid) and a warm run (the steady state of a sweep worker)."""
+    loaded, lazy imports paid), then ``repeat`` warm runs with the replay off (and each
+    followed by the same seed with the replay on); ``warm`` / ``warm_replay`` are the fastest."""
     t0 = time.perf_counter()
-    p = subprocess.run([sys.executable, "-c", CASE, str(n), "1" if replay else "0", str(out),
-                        json.dumps(overrides(n, duration))],
+    p = subprocess.run([sys.executable, "-c", CASE, str(n), "1" if replay_on else "0", str(out),
+                        json.dumps(overrides(n, duration)), str(repeat)],
                        capture_output=True, text=True, check=True, env={**os.environ, **ONE_THREAD})
     r = json.loads(p.stdout.strip().splitlines()[-1])
     r["process_s"] = time.perf_counter() - t0
+    r["warm"] = min(r["warm_off"], key=lambda c: c["wall_s"])
+    if r["warm_on"]:
+        r["warm_replay"] = min(r["warm_on"], key=lambda c: c["wall_s"])
     return r
 
 
@@ -103,6 +117,7 @@ def main(argv: list[str] | None = None) -> int:
     ap.add_argument("--sizes", type=int, nargs="*", default=[3, 10, 20, 40])
     ap.add_argument("--duration", type=float, default=60.0)
     ap.add_argument("--no-replay-on", action="store_true", help="only the replay-off cases")
+    ap.add_argument("--repeat", type=int, default=3, help="warm runs per case (the fastest is reported)")
     ap.add_argument("--mc-runs", type=int, default=0, help="Monte Carlo runs at N = 3 (0 = skip; issue 7: 100)")
     ap.add_argument("--mc-duration", type=float, default=60.0)
     ap.add_argument("--mc-workers", type=int, default=2)
@@ -110,34 +125,37 @@ def main(argv: list[str] | None = None) -> int:
     args = ap.parse_args(argv)
     rows = []
     mc = None
-    replays = (False,) if args.no_replay_on else (False, True)
     with tempfile.TemporaryDirectory() as tmp:
         for n in args.sizes:
-            for replay in replays:
-                r = run_case(n, args.duration, replay, Path(tmp) / f"n{n}_{int(replay)}")
-                r.update(n=n, replay=replay)
-                for tag in ("cold", "warm"):
-                    c = r[tag]
-                    c["rtf"] = c["simulated_s"] / c["wall_s"]
-                    t = c["timing_s"]
-                    print(f"N={n:3d} replay={'on ' if replay else 'off'} {tag}: simulated {c['simulated_s']:6.1f} s  "
-                          f"wall {c['wall_s']:7.2f} s  cpu {c['cpu_s']:7.2f} s  RTF {c['rtf']:7.1f}x  | "
-                          + "  ".join(f"{k} {v:.2f}" for k, v in t.items()), flush=True)
-                print(f"        start-up (interpreter + imports) {r['startup_s']:.2f} s, whole process "
-                      f"{r['process_s']:.2f} s", flush=True)
-                rows.append(r)
+            r = run_case(n, args.duration, not args.no_replay_on, max(1, args.repeat), Path(tmp) / f"n{n}")
+            r["n"] = n
+            for tag, label in (("cold", "replay=off cold"), ("warm", "replay=off warm"), ("warm_replay", "replay=on  warm")):
+                if tag not in r:
+                    continue
+                c = r[tag]
+                c["rtf"] = c["simulated_s"] / c["wall_s"]
+                t = c["timing_s"]
+                print(f"N={n:3d} {label}: simulated {c['simulated_s']:6.1f} s  "
+                      f"wall {c['wall_s']:7.2f} s  cpu {c['cpu_s']:7.2f} s  RTF {c['rtf']:7.1f}x  | "
+                      + "  ".join(f"{k} {v:.2f}" for k, v in t.items()), flush=True)
+            walls = "  ".join(f"{c['wall_s']:.2f}" for c in r["warm_off"])
+            walls_on = "  ".join(f"{c['wall_s']:.2f}" for c in r["warm_on"])
+            print(f"        warm walls off: {walls}" + (f"; on: {walls_on}" if walls_on else "")
+                  + f"; start-up (interpreter + imports) {r['startup_s']:.2f} s, whole process {r['process_s']:.2f} s",
+                  flush=True)
+            rows.append(r)
         if args.mc_runs:
             mc = run_monte_carlo(args.mc_runs, args.mc_duration, args.mc_workers, Path(tmp))
     if rows:
         print("\nreal-time factor (simulated s / wall s of the run), one core; cold = first run of a fresh")
-        print("process (kernels loaded, lazy imports), warm = second run in the same process (a sweep worker):")
+        print(f"process (kernels loaded, lazy imports), warm = fastest of {max(1, args.repeat)} further runs in the "
+              "same process (a sweep worker):")
         print(f"{'N':>4s} {'off, cold':>10s} {'off, warm':>10s} {'on, warm':>9s} {'replay share (warm)':>20s}")
-        for n in args.sizes:
-            off = next(r for r in rows if r["n"] == n and not r["replay"])
-            on = next((r for r in rows if r["n"] == n and r["replay"]), None)
-            share = f"{1.0 - off['warm']['wall_s'] / on['warm']['wall_s']:20.1%}" if on else f"{'-':>20s}"
-            rtf_on = f"{on['warm']['rtf']:9.1f}" if on else f"{'-':>9s}"
-            print(f"{n:4d} {off['cold']['rtf']:10.1f} {off['warm']['rtf']:10.1f} {rtf_on} {share}")
+        for r in rows:
+            on = r.get("warm_replay")
+            share = f"{1.0 - r['warm']['wall_s'] / on['wall_s']:20.1%}" if on else f"{'-':>20s}"
+            rtf_on = f"{on['rtf']:9.1f}" if on else f"{'-':>9s}"
+            print(f"{r['n']:4d} {r['cold']['rtf']:10.1f} {r['warm']['rtf']:10.1f} {rtf_on} {share}")
     if mc:
         print(f"\nMonte Carlo: {mc['runs']} runs x {mc['duration_s']:.0f} s, N = 3, {mc['workers']} worker processes: "
               f"{mc['wall_s']:.1f} s wall ({mc['failed']} failed; mean run wall {mc['per_run_wall_mean_s']:.2f} s)")
