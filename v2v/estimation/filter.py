@@ -456,6 +456,7 @@ class ClusterFilterBase(ABC):
                 _offsets([len(ep.prn) for ep in eps_v]), lead_prn, lead_pr, lead_sv, geo.base_ecef_m, geo.rot_ecef_to_enu)
             mo = moff_v.tolist()
         for j, v in enumerate(have):
+            assert lead_ep is not None  # (have is empty without the lead's epoch)
             ep = epochs[v]
             a, b = mo[j], mo[j + 1]
             iv, il, el = iv_cat[a:b], il_cat[a:b], el_cat[a:b]

@@ -38,6 +38,7 @@ counted, as in Python) instead of raising.
 from __future__ import annotations
 
 import math
+from typing import Any
 
 import numpy as np
 from numba import njit
@@ -57,7 +58,7 @@ EXCLUDED = 6  # left out by the epoch's screen: an UpdateInfo with accepted=Fals
 REC_UWB = 0
 REC_CONSTRAINT = 1
 
-_JIT = {"cache": True, "nogil": True, "error_model": "numpy"}
+_JIT: dict[str, Any] = {"cache": True, "nogil": True, "error_model": "numpy"}
 
 
 @njit(**_JIT)

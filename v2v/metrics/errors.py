@@ -94,7 +94,7 @@ EPOCH_COLUMNS = ("true_e_m", "true_n_m", "true_u_m", "est_e_m", "est_n_m", "est_
                  "sigma_along_m", "sigma_across_m", "sigma_up_m", "cov_ee_m2", "cov_en_m2", "cov_nn_m2", "nees_pos")
 
 
-_JIT = {"cache": True, "nogil": True, "error_model": "numpy"}
+_JIT: dict[str, Any] = {"cache": True, "nogil": True, "error_model": "numpy"}
 
 
 @njit(**_JIT)

@@ -530,7 +530,7 @@ class SumoSimulation:
 # element, the arithmetic of the numpy formulation it replaces (same libm sin/cos, same
 # operation order, no fused multiply-add), so the truth is the same to the last bit.
 
-_JIT = {"cache": True, "nogil": True, "error_model": "numpy"}
+_JIT: dict[str, Any] = {"cache": True, "nogil": True, "error_model": "numpy"}
 
 
 @njit(**_JIT)

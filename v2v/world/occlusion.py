@@ -72,6 +72,7 @@ step's vehicle boxes, in one call (a whole UWB or bearing chunk).
 from __future__ import annotations
 
 from dataclasses import dataclass
+from typing import Any
 
 import numpy as np
 import shapely
@@ -167,7 +168,7 @@ def _query_pairs(tree: shapely.STRtree, geoms, **kw) -> tuple[NDArray[np.int64],
     return res[0].astype(np.int64), res[1].astype(np.int64)
 
 
-_JIT = {"cache": True, "nogil": True, "error_model": "numpy"}
+_JIT: dict[str, Any] = {"cache": True, "nogil": True, "error_model": "numpy"}
 
 
 @njit(**_JIT)

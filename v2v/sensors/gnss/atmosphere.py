@@ -42,6 +42,7 @@ MacGougan (2009) eq. 5.1 (P and Phi error terms: d rho, dt, I, T; phase has -I).
 from __future__ import annotations
 
 from dataclasses import dataclass
+from typing import Any
 
 import numpy as np
 from numba import njit
@@ -416,7 +417,7 @@ def _cross3(a: F64, b: F64) -> F64:
 # same formulas as the array functions above, one pair at a time inside a numba loop; the
 # tests (tests/test_gnss_kernels.py) check that the two agree to float rounding.
 
-_JIT = {"cache": True, "nogil": True, "error_model": "numpy"}
+_JIT: dict[str, Any] = {"cache": True, "nogil": True, "error_model": "numpy"}
 
 
 @njit(**_JIT)

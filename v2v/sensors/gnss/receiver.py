@@ -768,7 +768,7 @@ def _hermite_all(x: float, node_t: F64, npos: F64, nvel: F64) -> F64:
 
 
 # ---------------------------------------------------------------------------- compiled kernels
-_JIT = {"cache": True, "nogil": True, "error_model": "numpy"}
+_JIT: dict[str, Any] = {"cache": True, "nogil": True, "error_model": "numpy"}
 
 
 @njit(**_JIT)

@@ -31,6 +31,7 @@ from __future__ import annotations
 from dataclasses import dataclass
 from enum import StrEnum
 from functools import lru_cache
+from typing import Any
 
 import numpy as np
 from numba import njit
@@ -130,7 +131,7 @@ _DEFAULT_CONFIG = SppConfig()
 # positions within ~2e-8 m, which is the solution's own float resolution (residuals are
 # differences of ~2e7 m ranges, 4e-9 m apart, times the DOP).
 
-_JIT = {"cache": True, "nogil": True, "error_model": "numpy"}
+_JIT: dict[str, Any] = {"cache": True, "nogil": True, "error_model": "numpy"}
 _geodetic = njit(**_JIT)(ecef_to_geodetic_point)
 _STATUS = (SppStatus.OK, SppStatus.OK_EXCLUDED, SppStatus.RESIDUAL_TEST_FAILED, SppStatus.TOO_FEW_SATELLITES,
            SppStatus.SINGULAR_GEOMETRY, SppStatus.NOT_CONVERGED)  # kernel status codes 0..5
