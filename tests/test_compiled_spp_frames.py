@@ -22,8 +22,9 @@ from v2v.frames import (
     wrap_angle_scalar,
 )
 from v2v.sensors.gnss.atmosphere import klobuchar_delay_s, saastamoinen_zenith_delay_m, tropo_mapping
-from v2v.sensors.gnss.spp import SppConfig, SppStatus, _cond2_symmetric, _solve, solve_spp
+from v2v.sensors.gnss.spp import SppConfig, SppStatus, solve_spp
 from v2v.sensors.measurements import SPEED_OF_LIGHT_MPS
+from v2v.smallmat import cond2_symmetric, solve_small
 
 RNG = np.random.default_rng(20260)
 
@@ -59,10 +60,10 @@ def test_condition_number_and_solve_match_lapack(log_cond):
     n = q @ np.diag(eig) @ q.T
     n = 0.5 * (n + n.T)
     ref = np.linalg.cond(n)
-    assert _cond2_symmetric(n) == pytest.approx(ref, rel=1e-15 * ref + 1e-13)
-    assert (_cond2_symmetric(n) > 1e12) == (ref > 1e12)
+    assert cond2_symmetric(n) == pytest.approx(ref, rel=1e-15 * ref + 1e-13)
+    assert (cond2_symmetric(n) > 1e12) == (ref > 1e12)
     b = RNG.standard_normal((4, 2))
-    x = _solve(n, b)
+    x = solve_small(n, b)
     assert np.max(np.abs(x - np.linalg.solve(n, b))) <= 1e-14 * ref * np.max(np.abs(x))
 
 

@@ -114,6 +114,7 @@ from v2v.estimation.process import (
 from v2v.frames import wrap_angle
 from v2v.measmodels import bearing_rad
 from v2v.sensors.measurements import Bearings, GnssEpoch, UwbRanges
+from v2v.smallmat import cond2_symmetric
 
 F64 = NDArray[np.float64]
 
@@ -287,23 +288,22 @@ def screen_blunders_status(h: F64, r: F64, sigma: float, k: float) -> tuple[NDAr
     because all remaining ``|w| <= k``; False when it stopped at redundancy < 2 or at a
     singular geometry (a fault may remain), or never had redundancy >= 2."""
     # compiled (v2v.estimation.kernels.screen_blunders): per iteration N = H^T H, its
-    # condition number (ratio of its extreme eigenvalues), N^-1 H^T (Cholesky), the
-    # residuals and w of the remaining measurements
+    # condition number (Jacobi eigenvalues), N^-1 H^T (small LU), the residuals and w of
+    # the remaining measurements
     flagged, isolated = kernels.screen_blunders(np.ascontiguousarray(h, dtype=np.float64),
                                                 np.ascontiguousarray(r, dtype=np.float64), float(sigma), float(k))
     return flagged, bool(isolated)
 
 
 def cond_sym(a: F64) -> float:
-    """2-norm condition number of a small symmetric matrix: ``np.linalg.cond(a)`` (the ratio
-    of its extreme singular values = absolute eigenvalues) to round-off, from compiled Jacobi
-    rotations (:func:`v2v.estimation.kernels.sym_abs_eig_extremes`) instead of an SVD; inf
+    """2-norm condition number of a small symmetric matrix: ``np.linalg.cond(a)`` to round-off
+    (compiled Jacobi rotations, :func:`v2v.smallmat.cond2_symmetric`, instead of an SVD); inf
     when ``a`` is singular or not finite."""
     a = np.ascontiguousarray(a, dtype=np.float64)
     if not np.isfinite(a).all():
         return math.inf
-    hi, lo = kernels.sym_abs_eig_extremes(a, np.empty_like(a))
-    return hi / lo if lo > 0.0 else math.inf
+    c = float(cond2_symmetric(a))
+    return c if c == c else math.inf  # 0 / 0 of a zero matrix
 
 
 class ClusterFilterBase(ABC):
@@ -333,8 +333,6 @@ class ClusterFilterBase(ABC):
         self.phase_status: dict[str, PhaseStatus] = {}
         #: vehicles whose last GNSS epoch gave fewer than 4 accepted SD pseudoranges
         self.gnss_weak: dict[str, bool] = {}
-        self._starts: dict[str, int] = {}
-        self._starts_of: StateLayout | None = None
         x0, p0 = self._prior(layout)
         self._replace(x0, p0)
 
@@ -435,7 +433,7 @@ class ClusterFilterBase(ABC):
         # only its own block, so all vehicles' sigmas are read first
         ready = [v for v in lay.vehicles if self._vehicle_ready[v]]
         if ready:
-            i = np.fromiter(map(self._position_start, ready), dtype=np.int64, count=len(ready))
+            i = np.fromiter(map(lay.position_starts.__getitem__, ready), dtype=np.int64, count=len(ready))
             d = np.diagonal(self._get_P())
             sig = np.sqrt(np.maximum(d[i] + d[i + 1] + d[i + 2], 0.0))
             for v in compress(ready, (sig > self.config.divergence_position_sigma_m).tolist()):
@@ -757,13 +755,6 @@ class ClusterFilterBase(ABC):
             return False
         n_rej = len(w) - sum(map(itemgetter(1), w))  # = the tests with ok False
         return n_rej > self.config.divergence_reject_fraction * len(w)
-
-    def _position_start(self, v: str) -> int:
-        """``layout.position(v).start`` (cached per layout)."""
-        lay = self.layout
-        if self._starts_of is not lay:
-            self._starts, self._starts_of = {u: lay.position(u).start for u in lay.vehicles}, lay
-        return self._starts[v]
 
     def _reset_vehicle(self, v: str) -> None:
         """Back to the uninitialized prior; the next GNSS snapshot re-initializes the block."""
@@ -1363,8 +1354,7 @@ class ClusterEkf(ClusterFilterBase):
         self._az_ir = np.ascontiguousarray(self._az_pairs[:, 1])
         lay = self.layout
         # kernel indices: position-slice start per vehicle (-1 = lead at the origin)
-        self._pos0 = {v: lay.position(v).start for v in lay.vehicles}
-        self._pos0[lay.lead] = -1
+        self._pos0 = {**lay.position_starts, lay.lead: -1}
         self._clk = {v: lay.clock(v) for v in lay.vehicles}  # kernel indices per vehicle (as the layout's)
         self._vel0 = {v: lay.velocity(v).start for v in lay.vehicles}
         self._drift = {v: lay.drift(v) for v in lay.vehicles}
@@ -1567,7 +1557,7 @@ class ClusterEkf(ClusterFilterBase):
         zd = _cat1([ep.doppler_mps for _, ep, _, _ in jobs])[bat.row0[bat.vehicle_of] + bat.iv_cat] \
             - np.asarray(lead_ep.doppler_mps, dtype=np.float64)[bat.il_cat]
         if np.isfinite(zd).all():  # (= both Dopplers finite: a difference of finite values is finite)
-            kept = [(v, ep, iv, il) for v, ep, iv, il in jobs]
+            kept = jobs
         else:  # leave out (and count) the satellites with a non-finite Doppler, vehicle by vehicle
             kept = []
             for v, ep, iv, il in jobs:

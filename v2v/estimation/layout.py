@@ -85,6 +85,8 @@ class StateLayout:
     blocks: tuple[BlockId, ...]
     _offsets: dict[BlockId, int] = field(init=False, repr=False, compare=False)
     _vehicles: tuple[str, ...] = field(init=False, repr=False, compare=False)
+    #: ``position(v).start`` of every non-lead vehicle (read per epoch by the filter)
+    position_starts: dict[str, int] = field(init=False, repr=False, compare=False)
     n: int = field(init=False)
 
     def __post_init__(self) -> None:
@@ -104,6 +106,7 @@ class StateLayout:
                 raise UserError(f"azimuth-rate block of {key!r} has no azimuth block", field="layout.blocks")
         object.__setattr__(self, "_offsets", offsets)
         object.__setattr__(self, "_vehicles", tuple(k for kind, k in self.blocks if kind == VEHICLE))
+        object.__setattr__(self, "position_starts", {v: offsets[(VEHICLE, v)] + _POS.start for v in self._vehicles})
         object.__setattr__(self, "n", i)
 
     # ------------------------------------------------------------------ building

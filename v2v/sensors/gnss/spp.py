@@ -46,6 +46,7 @@ from v2v.sensors.gnss.atmosphere import (
     tropo_slant_delay_scalar_m,
 )
 from v2v.sensors.measurements import SPEED_OF_LIGHT_MPS, GnssEpoch
+from v2v.smallmat import cond2_symmetric, solve_small
 
 F64 = NDArray[np.float64]
 
@@ -210,85 +211,13 @@ def _normal_matrix(h, w):  # pragma: no cover - compiled
 
 
 @njit(**_JIT)
-def _solve(a, b):  # pragma: no cover - compiled
-    """``a^-1 b`` for a small square ``a`` and ``b`` (m, k): Gaussian elimination with partial
-    pivoting (the algorithm of LAPACK ``dgesv``, unblocked). A zero pivot gives inf/NaN."""
-    m = a.shape[0]
-    lu = a.copy()
-    x = b.copy()
-    for j in range(m):
-        p = j + np.argmax(np.abs(lu[j:, j]))
-        if p != j:
-            for c in range(m):
-                lu[j, c], lu[p, c] = lu[p, c], lu[j, c]
-            for c in range(x.shape[1]):
-                x[j, c], x[p, c] = x[p, c], x[j, c]
-        for i in range(j + 1, m):
-            f = lu[i, j] / lu[j, j]
-            for c in range(j + 1, m):
-                lu[i, c] -= f * lu[j, c]
-            for c in range(x.shape[1]):
-                x[i, c] -= f * x[j, c]
-    for j in range(m - 1, -1, -1):
-        for c in range(x.shape[1]):
-            acc = x[j, c]
-            for i in range(j + 1, m):
-                acc -= lu[j, i] * x[i, c]
-            x[j, c] = acc / lu[j, j]
-    return x
-
-
-@njit(**_JIT)
-def _cond2_symmetric(a):  # pragma: no cover - compiled
-    """2-norm condition number ``max|lambda| / min|lambda|`` of a symmetric matrix (its
-    singular values are its eigenvalues' magnitudes), by cyclic Jacobi rotations (Golub & Van
-    Loan 2013, alg. 8.5.3), which find even the small eigenvalues of a positive definite
-    matrix to high relative accuracy. ``a`` is symmetrized first (H'WH is symmetric only up
-    to rounding)."""
-    m = a.shape[0]
-    s = np.empty((m, m))
-    for p in range(m):
-        for q in range(m):
-            s[p, q] = 0.5 * (a[p, q] + a[q, p])
-    for _ in range(30):
-        off = 0.0
-        diag = 0.0
-        for p in range(m):
-            diag += s[p, p] ** 2
-            for q in range(p + 1, m):
-                off += s[p, q] ** 2
-        if not off > 1e-36 * diag:  # converged (also stops on NaN)
-            break
-        for p in range(m - 1):
-            for q in range(p + 1, m):
-                if s[p, q] == 0.0:
-                    continue
-                theta = (s[q, q] - s[p, p]) / (2.0 * s[p, q])
-                t = 1.0 / (abs(theta) + np.sqrt(theta * theta + 1.0)) if abs(theta) < 1e150 else 0.5 / abs(theta)
-                if theta < 0.0:
-                    t = -t
-                c = 1.0 / np.sqrt(t * t + 1.0)
-                sn = t * c
-                for k in range(m):  # columns p, q
-                    skp, skq = s[k, p], s[k, q]
-                    s[k, p], s[k, q] = c * skp - sn * skq, sn * skp + c * skq
-                for k in range(m):  # rows p, q
-                    spk, sqk = s[p, k], s[q, k]
-                    s[p, k], s[q, k] = c * spk - sn * sqk, sn * spk + c * sqk
-    lo, hi = np.inf, 0.0
-    for p in range(m):
-        lo, hi = min(lo, abs(s[p, p])), max(hi, abs(s[p, p]))
-    return hi / lo
-
-
-@njit(**_JIT)
 def _dops(h_ecef, x):  # pragma: no cover - compiled
     """GDOP, PDOP, HDOP, VDOP, TDOP from ``(H'H)^-1`` with H rotated to local ENU at ``x``."""
     lat, lon, _ = _geodetic(x[0], x[1], x[2])
     h = h_ecef.copy()
     for i in range(h.shape[0]):
         h[i, 0], h[i, 1], h[i, 2] = _to_enu(h_ecef[i, 0], h_ecef[i, 1], h_ecef[i, 2], lat, lon)
-    q = _solve(_normal_matrix(h, np.ones(h.shape[0])), np.eye(4))
+    q = solve_small(_normal_matrix(h, np.ones(h.shape[0])), np.eye(4))
     out = np.empty(5)
     out[0] = np.sqrt(q[0, 0] + q[1, 1] + q[2, 2] + q[3, 3])
     out[1] = np.sqrt(q[0, 0] + q[1, 1] + q[2, 2])
@@ -328,13 +257,13 @@ def _spp_kernel(sv, y_all, finite, x_prior, sigma0_m, elevation_weighting, alpha
             v = y_u - _corrections(sv_u, x, t_gps_s, iono, tropo, klob_alpha, klob_beta) - (rho + x[3])
             w = _weights(sv_u, x, sigma0_m, elevation_weighting)
             nmat = _normal_matrix(h, w)
-            if _cond2_symmetric(nmat) > _COND_MAX:
+            if cond2_symmetric(nmat) > _COND_MAX:
                 return 4, it, x, used, res, 0.0, 0.0, np.zeros(5)
             rhs = np.zeros((4, 1))  # H' W v
             for i in range(n_used):
                 for a in range(4):
                     rhs[a, 0] += h[i, a] * (w[i] * v[i])
-            dx = _solve(nmat, rhs)[:, 0]
+            dx = solve_small(nmat, rhs)[:, 0]
             x += dx
             if np.sqrt(np.sum(dx * dx)) < tol_m:
                 converged = True
@@ -357,7 +286,7 @@ def _spp_kernel(sv, y_all, finite, x_prior, sigma0_m, elevation_weighting, alpha
         if dof > 0 and chi2 > thr:
             if exclude and n_used - 1 >= 5:
                 # w-test (Baarda): |r_i| / sqrt(sigma_i^2 - (H (H'WH)^-1 H')_ii)
-                n_inv = _solve(_normal_matrix(h, w), np.eye(4))
+                n_inv = solve_small(_normal_matrix(h, w), np.eye(4))
                 std_res = np.empty(n_used)
                 for i in range(n_used):
                     q_v = 1.0 / w[i]
