@@ -14,15 +14,17 @@ kind in update order, computed here straight from the records that went in.
 
 from __future__ import annotations
 
+from types import SimpleNamespace
+
 import numpy as np
 
-from v2v.estimation.filter import ClusterEkf, FilterConfig, UpdateInfo
+from v2v.estimation.filter import ClusterEkf, FilterConfig, UpdateBatch, UpdateInfo, Updates
 from v2v.estimation.layout import StateLayout
 from v2v.estimation.reference import ReferenceClusterEkf
 from v2v.estimation.simulate import SimScenario, run_filter, simulate, vehicle_ids
 from v2v.frames import ecef_to_enu_rotation, ecef_to_geodetic
 from v2v.metrics.summary import update_kind_statistics
-from v2v.pipeline import UpdateLog
+from v2v.pipeline import Event, UpdateLog, _faulty, _faulty_flags, _update_counts
 
 
 def test_production_records_match_reference_field_by_field():
@@ -38,7 +40,7 @@ def test_production_records_match_reference_field_by_field():
     v2.pseudorange_m[0] += 60.0  # blunder: > 10 sigma of an SD pseudorange
     prod, ref = ClusterEkf(lay, cfg), ReferenceClusterEkf(lay, cfg)
     kinds: set[str] = set()
-    n_rec = 0
+    n_rec = n_batch = 0
     for (_, ip), (_, ir) in zip(run_filter(prod, eps, scn.dt_s), run_filter(ref, eps, scn.dt_s), strict=True):
         assert len(ip) == len(ir)
         for a, b in zip(ip, ir, strict=True):
@@ -49,7 +51,9 @@ def test_production_records_match_reference_field_by_field():
             assert a.nis == a.innovation * a.innovation / a.variance
             kinds.add(a.kind)
         n_rec += len(ip)
+        n_batch += sum(len(p) for p in ip.parts if isinstance(p, UpdateBatch))
     assert kinds >= {"sd_pseudorange", "sd_doppler", "uwb", "bearing"}
+    assert n_batch > 0.9 * n_rec  # most records come as column batches (all accepted), built only here
     assert prod.counters == ref.counters
     assert prod.counters.get("rejected_sd_pseudorange", 0) >= 1  # the blunder went through the per-record path
     assert n_rec > 1000
@@ -155,3 +159,72 @@ def test_update_log_statistics_and_columns_match_the_records():
     assert cols["nis"] == [i.nis for i, _ in all_infos]
     assert cols["faulty"] == [f for _, f in all_infos]
     assert log.n == len(all_infos)
+
+
+def _mixed_updates() -> tuple[Updates, list[UpdateInfo]]:
+    """An :class:`Updates` of two column batches around plain records (one rejected), and the
+    records it stands for, built one by one as ``UpdateInfo``'s definition says."""
+    rng = np.random.default_rng(11)
+    nu1, s1 = rng.normal(size=5), rng.uniform(1.0, 4.0, 5)
+    nu2, s2 = rng.normal(size=3), rng.uniform(1.0, 4.0, 3)
+    veh1 = [("v1",), ("v1",), ("v2",), ("v2",), ("v2",)]
+    prn1 = [3, 7, 3, 9, 12]
+    plain = [UpdateInfo("sd_pseudorange", ("v2",), 8.0, 1.0, 64.0, False, 21), UpdateInfo("uwb", ("v1", "v2"), 0.5, 2.0, 0.125, True)]
+    up = Updates()
+    up += UpdateBatch("sd_pseudorange", veh1, nu1, s1, prn1)
+    up += plain
+    up += UpdateBatch("uwb", [("lead", "v1"), ("v1", "v2"), ("lead", "v2")], nu2, s2)
+    want = [UpdateInfo("sd_pseudorange", v, a, b, a * a / b, True, p) for v, a, b, p in
+            zip(veh1, nu1.tolist(), s1.tolist(), prn1, strict=True)]
+    want += plain
+    want += [UpdateInfo("uwb", v, a, b, a * a / b, True, -1) for v, a, b in
+             zip([("lead", "v1"), ("v1", "v2"), ("lead", "v2")], nu2.tolist(), s2.tolist(), strict=True)]
+    return up, want
+
+
+def test_update_batches_are_the_records_they_stand_for():
+    """Column batches read as the ``UpdateInfo`` records built one by one (nis bit for bit
+    ``innovation**2 / variance`` of Python floats); slices, counts and ``+`` as on the list."""
+    up, want = _mixed_updates()
+    assert len(up) == len(want) and list(up) == want and up == want and want == up
+    assert all(type(r) is UpdateInfo for r in up)
+    assert up[2] == want[2] and up[-1] == want[-1]
+    b = up.parts[0]
+    assert list(b[1:4]) == want[1:4] and isinstance(b[1:4], UpdateBatch)
+    assert up + [want[0]] == [*want, want[0]]
+    from collections import Counter
+    assert up.counts() == Counter((r.vehicles, r.kind, r.accepted) for r in want)
+    assert _update_counts(up) == _update_counts(list(want))
+
+
+def test_update_log_of_batches_equals_the_log_of_their_records():
+    """The log written from column batches has the columns and statistics of the same records given one by one."""
+    up, want = _mixed_updates()
+    faulty = [k % 3 == 0 for k in range(len(want))]
+    a, b = UpdateLog(), UpdateLog()
+    a.add(0.1, up, faulty)
+    a.add(0.2, Updates(), [])
+    b.add(0.1, list(want), faulty)
+    assert a.columns() == b.columns()
+    assert a.kind_statistics() == b.kind_statistics()
+
+
+def test_faulty_flags_of_batches_follow_the_per_record_definition():
+    """``_faulty_flags`` reads batches from their columns; each flag must still be
+    :func:`v2v.pipeline._faulty` of its own record (NLOS / faulted satellites of a GNSS
+    event; an NLOS UWB range; an NLOS bearing)."""
+    up, want = _mixed_updates()
+    events = [
+        Event(0.1, "gnss", gnss={}, bad_prns={"v1": frozenset({7}), "v2": frozenset({9, 21})}),
+        Event(0.1, "gnss", gnss={}, bad_prns={"v1": frozenset(), "v2": frozenset()}),
+        Event(0.1, "uwb", uwb=SimpleNamespace(los=np.array([False]), errors_m={})),  # type: ignore[arg-type]
+        Event(0.1, "uwb", uwb=SimpleNamespace(los=np.array([True]), errors_m={"fault": np.array([0.3])})),  # type: ignore[arg-type]
+        Event(0.1, "uwb", uwb=SimpleNamespace(los=np.array([True]), errors_m={})),  # type: ignore[arg-type]
+        Event(0.1, "bearing", bearings=SimpleNamespace(los=np.array([True, False]))),  # type: ignore[arg-type]
+    ]
+    n_true = 0
+    for ev in events:
+        got = _faulty_flags(up, ev)
+        assert got == [_faulty(r, ev) for r in want]
+        n_true += sum(got)
+    assert n_true > 0

@@ -32,7 +32,9 @@ from v2v.estimation.filter import (
     ClusterEkf,
     FilterConfig,
     MeasurementNoiseConfig,
+    UpdateBatch,
     UpdateInfo,
+    Updates,
 )
 from v2v.estimation.layout import StateLayout
 from v2v.estimation.phase import PhaseConfig, wrong_fix
@@ -406,15 +408,38 @@ class UpdateLog:
         import pickle
         import tempfile
 
-        infos = [info for _, i, _ in self._pending for info in i]
-        if not infos:
+        n = sum(len(i) for _, i, _ in self._pending)
+        if not n:
             self._pending = []
             return
-        n = len(infos)
         t_s = np.repeat(np.array([t for t, _, _ in self._pending], dtype=float),
                         [len(i) for _, i, _ in self._pending])
         faulty = np.fromiter((f for _, _, fs in self._pending for f in fs), bool, n)
-        kind, vehicles, _nu, _s, nis, accepted, prn = zip(*infos, strict=True)  # UpdateInfo fields
+        # the UpdateInfo fields column by column; a batch of accepted updates (UpdateBatch)
+        # straight from its columns, plain records field by field
+        kind: list[str] = []
+        vehicles: list[tuple[str, ...]] = []
+        nis: list[Any] = []
+        accepted: list[Any] = []
+        prn: list[int] = []
+        for _, infos, _ in self._pending:
+            for seg in _segments(infos):
+                if not len(seg):
+                    continue
+                if isinstance(seg, UpdateBatch):
+                    m = len(seg)
+                    kind += [seg.kind] * m
+                    vehicles += seg.vehicles
+                    nis.append(seg.nis)
+                    accepted.append(np.ones(m, dtype=bool))
+                    prn += [-1] * m if seg.prn is None else seg.prn
+                else:
+                    k, v, _nu, _s, ni, ac, pr = zip(*seg, strict=True)
+                    kind += k
+                    vehicles += v
+                    nis.append(np.array(ni, dtype=float))
+                    accepted.append(np.array(ac, dtype=bool))
+                    prn += pr
         joined = {v: ",".join(v) for v in set(vehicles)}
         names = sorted(set(kind))  # the chunk's kinds; each update stores its kind as an index into them
         code = {k: i for i, k in enumerate(names)}
@@ -423,9 +448,9 @@ class UpdateLog:
             "kind_names": names,
             "kind_code": np.fromiter(map(code.__getitem__, kind), np.int16, n),
             "vehicles": np.array([joined[v] for v in vehicles], dtype=object),
-            "prn": list(prn),
-            "nis": np.fromiter(nis, float, n),
-            "accepted": np.fromiter(accepted, bool, n),
+            "prn": prn,
+            "nis": np.concatenate(nis),
+            "accepted": np.concatenate(accepted),
             "faulty": faulty,
         }
         if self._file is None:
@@ -547,20 +572,43 @@ def _faulty(info: UpdateInfo, ev: Event) -> bool:
 
 def _faulty_flags(infos: Sequence[UpdateInfo], ev: Event) -> list[bool]:
     """:func:`_faulty` of every update of one event, with the event-level work done once
-    (most GNSS events have no NLOS / faulted satellite at all)."""
+    (most GNSS events have no NLOS / faulted satellite at all); the batches of an
+    :class:`Updates` from their columns (one kind each)."""
     if ev.kind == "gnss":
         bad = ev.bad_prns if ev.bad_prns is not None else (_bad_prns(ev.gnss) if ev.gnss is not None else {})
         if not any(bad.values()):
             return [False] * len(infos)
-        return [info.kind in (KIND_SD_PR, KIND_SD_PR_PAIR) and any(info.prn in bad.get(v, ()) for v in info.vehicles)
-                for info in infos]
-    if ev.kind == "uwb" and ev.uwb is not None:
-        f = not bool(ev.uwb.los[0]) or float(ev.uwb.errors_m.get("fault", np.zeros(1))[0]) != 0.0
-        return [f and info.kind == KIND_UWB for info in infos]
-    if ev.kind == "bearing" and ev.bearings is not None:
-        f = not bool(np.all(ev.bearings.los))
-        return [f and info.kind == KIND_BEARING for info in infos]
+        out: list[bool] = []
+        for seg in _segments(infos):
+            if isinstance(seg, UpdateBatch):
+                if seg.kind in (KIND_SD_PR, KIND_SD_PR_PAIR) and seg.prn is not None:
+                    out += [any(p in bad.get(v, ()) for v in vehs) for vehs, p in zip(seg.vehicles, seg.prn, strict=True)]
+                else:
+                    out += [False] * len(seg)
+            else:
+                out += [info.kind in (KIND_SD_PR, KIND_SD_PR_PAIR) and any(info.prn in bad.get(v, ()) for v in info.vehicles)
+                        for info in seg]
+        return out
+    if ev.kind in ("uwb", "bearing"):
+        own = KIND_UWB if ev.kind == "uwb" else KIND_BEARING
+        if ev.kind == "uwb" and ev.uwb is not None:
+            f = not bool(ev.uwb.los[0]) or float(ev.uwb.errors_m.get("fault", np.zeros(1))[0]) != 0.0
+        elif ev.kind == "bearing" and ev.bearings is not None:
+            f = not bool(np.all(ev.bearings.los))
+        else:
+            return [_faulty(info, ev) for info in infos]
+        if not f:
+            return [False] * len(infos)
+        out = []
+        for seg in _segments(infos):
+            out += [seg.kind == own] * len(seg) if isinstance(seg, UpdateBatch) else [info.kind == own for info in seg]
+        return out
     return [_faulty(info, ev) for info in infos]
+
+
+def _segments(infos: Sequence[UpdateInfo]) -> Sequence[Sequence[UpdateInfo]]:
+    """The record lists and column batches of ``infos`` (an :class:`Updates`), or ``infos`` as one piece."""
+    return infos.parts if isinstance(infos, Updates) else (infos,)
 
 
 class SolutionRunner:
@@ -579,7 +627,7 @@ class SolutionRunner:
         self.rec = SolutionRecord(sol.name)
         self.use = set(sol.sensors)
         self.t_filter: float | None = None
-        self.pending: list[UpdateInfo] = []
+        self.pending = Updates()
         self.last_gnss: tuple[float, dict[str, GnssEpoch]] | None = None  # for the phase truth (wrong fixes)
         self.t_prev_out: float | None = None
         self.members = set(vehicles)
@@ -638,7 +686,7 @@ class SolutionRunner:
                     t_filter = ev.t_s
                 ekf.predict(max(0.0, ev.t_s - t_filter))
                 t_filter = max(t_filter, ev.t_s)
-                infos = []
+                infos = Updates()
                 if not has_gnss and not aided and sol.height_aiding_sigma_m is not None:
                     infos += ekf.update_height_aiding(sol.height_aiding_sigma_m)
                     aided = True
@@ -660,7 +708,7 @@ class SolutionRunner:
             t_filter = max(t_filter, t_out)
             step = truth_at(t_out)
             if step is None or lead not in step.vehicles:
-                pending = []
+                pending = Updates()
                 continue
             rows = _epoch_rows(sol.name, t_out, ekf, step, lead, vehicles, pending)
             if ekf.config.phase is not None:
@@ -672,13 +720,13 @@ class SolutionRunner:
                 rec.add_row(r)
             if self.on_epoch is not None:
                 self.on_epoch(t_out, sol.name, ekf, step, rows)
-            pending = []
+            pending = Updates()
         self.t_filter, self.pending, self.last_gnss, self.t_prev_out = t_filter, pending, last_gnss, t_prev_out
         rec.log.flush()
         return ei
 
     def _uwb_run(self, events: Sequence[Event], ei: int, t_out: float,
-                 t_filter: float) -> tuple[int, float, list[UpdateInfo]]:
+                 t_filter: float) -> tuple[int, float, Updates]:
         """The UWB events from ``events[ei]`` up to the next other event or ``t_out``, as
         the loop of :meth:`run` would process them; returns (next event index, filter time,
         their update records)."""
@@ -694,7 +742,7 @@ class SolutionRunner:
             dts.append(max(0.0, ev.t_s - t_filter))
             t_filter = max(t_filter, ev.t_s)
             run.append(ev)
-        out: list[UpdateInfo] = []
+        out = Updates()
         for ev, infos in zip(run, self.ekf.update_uwb_events(dts, [ev.uwb for ev in run]), strict=True):
             if infos:
                 self.rec.log.add(ev.t_s, infos, _faulty_flags(infos, ev))
@@ -738,7 +786,8 @@ def _update_counts(infos: Iterable[UpdateInfo]) -> dict[str, dict[str, int]]:
     """``{vehicle: {"used_<kind>" | "rejected_<kind>": count}}`` of an output interval's updates
     (counted per distinct (vehicles, kind, accepted) first: tens of thousands of records)."""
     counts: dict[str, dict[str, int]] = {}
-    for (vehs, kind, accepted), n in Counter(map(_VEHICLES_KIND_ACCEPTED, infos)).items():
+    per = infos.counts() if isinstance(infos, Updates) else Counter(map(_VEHICLES_KIND_ACCEPTED, infos))
+    for (vehs, kind, accepted), n in per.items():
         key = ("used_" if accepted else "rejected_") + _short(kind)
         for v in vehs:
             c = counts.setdefault(v, {})

@@ -15,7 +15,7 @@ that P stays symmetric positive definite there).
 from __future__ import annotations
 
 import copy
-from collections.abc import Callable, Iterator
+from collections.abc import Callable, Iterator, Sequence
 from dataclasses import replace
 from typing import Any
 
@@ -118,7 +118,7 @@ def uwb_blunder_trials(n_trials: int, b: float, seed: int, *, check: Check = Non
 
 def fault_run(scn: SimScenario, seed: int, *, cfg: FilterConfig | None = None, jump_at_s: float | None = None,
               corrupt_at_s: float | None = None,
-              check: Check = None) -> Iterator[tuple[SimEpoch, ClusterEkf, list[UpdateInfo]]]:
+              check: Check = None) -> Iterator[tuple[SimEpoch, ClusterEkf, Sequence[UpdateInfo]]]:
     """Filter ``scn`` with a 1 ms clock jump of v1's receiver from ``jump_at_s`` on (every
     pseudorange + 299 792.458 m) and/or a +50 m east corruption of v1's state at
     ``corrupt_at_s``; yields (epoch, filter, update records) after every epoch."""

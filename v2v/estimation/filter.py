@@ -80,8 +80,8 @@ from __future__ import annotations
 import itertools
 import math
 from abc import ABC, abstractmethod
-from collections import deque
-from collections.abc import Iterable, Sequence
+from collections import Counter, deque
+from collections.abc import Iterable, Iterator, Sequence
 from dataclasses import dataclass, field
 from functools import partial
 from itertools import compress, repeat
@@ -246,12 +246,135 @@ _info_from_tuple = partial(tuple.__new__, UpdateInfo)
 _nis_accepted = itemgetter(4, 5)  # (nis, accepted) of an UpdateInfo
 
 
+class UpdateBatch(Sequence[UpdateInfo]):
+    """Accepted updates of one kind from one compiled call, kept as columns: a read-only
+    sequence of :class:`UpdateInfo` (built only when iterated or indexed; then kept).
+
+    ``vehicles`` one tuple per update; ``innovation`` / ``variance`` float arrays;
+    ``prn`` the satellite numbers (None: -1 for all). ``nis = innovation^2 / variance``
+    elementwise (the same two IEEE operations as on Python floats). The per-epoch consumers
+    (counts, the update log, the NIS windows) read the columns; nothing else needs to know.
+    """
+
+    __slots__ = ("kind", "vehicles", "innovation", "variance", "prn", "_nis", "_recs")
+    accepted = True
+
+    def __init__(self, kind: str, vehicles: list[tuple[str, ...]], innovation: F64, variance: F64,
+                 prn: list[int] | None = None) -> None:
+        self.kind, self.vehicles, self.innovation, self.variance, self.prn = kind, vehicles, innovation, variance, prn
+        self._nis: F64 | None = None
+        self._recs: list[UpdateInfo] | None = None
+
+    @property
+    def nis(self) -> F64:
+        if self._nis is None:
+            nu = self.innovation
+            self._nis = nu * nu / self.variance
+        return self._nis
+
+    def records(self) -> list[UpdateInfo]:
+        if self._recs is None:
+            self._recs = list(map(_info_from_tuple, zip(
+                repeat(self.kind), self.vehicles, self.innovation.tolist(), self.variance.tolist(), self.nis.tolist(),
+                repeat(True), repeat(-1) if self.prn is None else self.prn)))
+        return self._recs
+
+    def __len__(self) -> int:
+        return len(self.vehicles)
+
+    def __iter__(self) -> Iterator[UpdateInfo]:
+        return iter(self.records())
+
+    def __getitem__(self, i):
+        if isinstance(i, slice):  # a batch of the selected updates (views of the columns)
+            return UpdateBatch(self.kind, self.vehicles[i], self.innovation[i], self.variance[i],
+                               None if self.prn is None else self.prn[i])
+        return self.records()[i]
+
+    def __eq__(self, other: object) -> bool:
+        return isinstance(other, Sequence) and not isinstance(other, str) and list(self) == list(other)
+
+    __hash__ = None  # type: ignore[assignment]
+
+    def __repr__(self) -> str:
+        return f"UpdateBatch({self.kind!r}, n={len(self)})"
+
+
+class Updates(Sequence[UpdateInfo]):
+    """The update records of one call, in update order: a read-only sequence of
+    :class:`UpdateInfo` made of segments (lists of records and :class:`UpdateBatch` columns),
+    extended with ``+=`` without building the batches' records. ``list(updates)`` gives the
+    plain list; ``==`` compares element by element with any sequence."""
+
+    __slots__ = ("parts", "_n")
+
+    def __init__(self, parts: Iterable[Sequence[UpdateInfo]] = ()) -> None:
+        self.parts: list[Sequence[UpdateInfo]] = []
+        self._n = 0
+        for p in parts:
+            self += p
+
+    def __iadd__(self, other: Iterable[UpdateInfo]) -> Updates:
+        if isinstance(other, Updates):
+            self.parts += other.parts
+            self._n += other._n
+        elif isinstance(other, UpdateBatch):
+            if len(other):
+                self.parts.append(other)
+                self._n += len(other)
+        else:
+            recs = other if isinstance(other, list) else list(other)
+            if recs:
+                self.parts.append(recs)
+                self._n += len(recs)
+        return self
+
+    def __len__(self) -> int:
+        return self._n
+
+    def __iter__(self) -> Iterator[UpdateInfo]:
+        return itertools.chain.from_iterable(self.parts)
+
+    def __getitem__(self, i):
+        return list(self)[i]
+
+    def __add__(self, other: Iterable[UpdateInfo]) -> list[UpdateInfo]:
+        return [*self, *other]
+
+    def __radd__(self, other: Iterable[UpdateInfo]) -> list[UpdateInfo]:
+        return [*other, *self]
+
+    def __eq__(self, other: object) -> bool:
+        return isinstance(other, Sequence) and not isinstance(other, str) and list(self) == list(other)
+
+    __hash__ = None  # type: ignore[assignment]
+
+    def __repr__(self) -> str:
+        return f"Updates({list(self)!r})"
+
+    def counts(self) -> Counter[tuple[tuple[str, ...], str, bool]]:
+        """Number of updates per (vehicles, kind, accepted), batches counted from their columns."""
+        c: Counter[tuple[tuple[str, ...], str, bool]] = Counter()
+        for p in self.parts:
+            if isinstance(p, UpdateBatch):
+                kind = p.kind
+                for vehs, n in Counter(p.vehicles).items():
+                    c[(vehs, kind, True)] += n
+            else:
+                c.update(map(_VEHICLES_KIND_ACCEPTED, p))
+        return c
+
+
+_VEHICLES_KIND_ACCEPTED = itemgetter(1, 0, 5)  # (vehicles, kind, accepted) of an UpdateInfo
+
+
 def _accepted_infos(kind: str, vehicles: Iterable[tuple[str, ...]], nu: F64, s: F64,
-                    prns: Iterable[int]) -> list[UpdateInfo]:
-    """Records of accepted updates from a kernel's output arrays, one per element of ``nu``:
-    ``nis = nu * nu / s`` elementwise (the same two IEEE operations as on Python floats)."""
-    return list(map(_info_from_tuple, zip(repeat(kind), vehicles, nu.tolist(), s.tolist(), (nu * nu / s).tolist(),
-                                          repeat(True), prns)))
+                    prns: list[int] | None) -> UpdateBatch:
+    """The records of accepted updates from a kernel's output arrays, one per element of
+    ``nu`` (``vehicles`` may be longer, e.g. ``repeat(...)``; ``prns`` None: no satellite)."""
+    n = len(nu)
+    vl = vehicles if isinstance(vehicles, list) and len(vehicles) == n else list(itertools.islice(vehicles, n))
+    return UpdateBatch(kind, vl, nu, s, prns)
 
 
 def scalar_update(x: F64, P: F64, idx: NDArray[np.int64], val: F64, innovation: float, r_var: float,
@@ -413,7 +536,7 @@ class ClusterFilterBase(ABC):
 
     # ----------------------------------------------------------------- GNSS
     def update_gnss(self, epochs: dict[str, GnssEpoch], lead_base_ecef_m: F64,
-                    lead_base_vel_ecef_mps: F64 | None = None) -> list[UpdateInfo]:
+                    lead_base_vel_ecef_mps: F64 | None = None) -> Updates:
         """SD pseudorange (and Doppler) updates from one epoch of every vehicle's receiver.
 
         ``lead_base_ecef_m``: the lead's standalone position (paper eq. 7: its error barely
@@ -425,7 +548,7 @@ class ClusterFilterBase(ABC):
                            else np.asarray(lead_base_vel_ecef_mps, dtype=float))
         lay = self.layout
         lead_ep = epochs.get(lay.lead)
-        infos: list[UpdateInfo] = []
+        infos = Updates()
         just_initialized: set[str] = set()
         self.integrity_available = dict.fromkeys(lay.vehicles, False)
         # covariance growth beyond any use (position sigma = sqrt of the position block's trace
@@ -732,10 +855,13 @@ class ClusterFilterBase(ABC):
         w = self._nis_window.setdefault(v, deque(maxlen=self.config.divergence_window))
         w.append((info.nis, info.accepted))
 
-    def _record_tests(self, v: str, infos: list[UpdateInfo]) -> None:
+    def _record_tests(self, v: str, infos: Sequence[UpdateInfo]) -> None:
         """:meth:`_record_test` of several records in order."""
         w = self._nis_window.setdefault(v, deque(maxlen=self.config.divergence_window))
-        w.extend(map(_nis_accepted, infos))
+        if isinstance(infos, UpdateBatch):
+            w.extend(zip(infos.nis.tolist(), repeat(True)))
+        else:
+            w.extend(map(_nis_accepted, infos))
 
     def window_mean_nis(self, v: str) -> float:
         """Mean NIS of the last ``divergence_window`` SD-pseudorange tests of ``v`` (NaN if none)."""
@@ -827,12 +953,12 @@ class ClusterFilterBase(ABC):
         return out
 
     def _sd_pseudoranges_all(self, geo: GnssGeometry, lead_ep: GnssEpoch,
-                             jobs: list[tuple[str, GnssEpoch, NDArray, NDArray]]) -> list[UpdateInfo]:
+                             jobs: list[tuple[str, GnssEpoch, NDArray, NDArray]]) -> Sequence[UpdateInfo]:
         """Engine hook: :meth:`_sd_pseudoranges` of every ``(v, epoch, iv, il)`` in order."""
         return [info for v, ep, iv, il in jobs for info in self._sd_pseudoranges(v, geo, ep, lead_ep, iv, il)]
 
     def _sd_dopplers_all(self, geo: GnssGeometry, lead_ep: GnssEpoch,
-                         jobs: list[tuple[str, GnssEpoch, NDArray, NDArray]]) -> list[UpdateInfo]:
+                         jobs: list[tuple[str, GnssEpoch, NDArray, NDArray]]) -> Sequence[UpdateInfo]:
         """Engine hook: :meth:`_sd_dopplers` of every ``(v, epoch, iv, il)`` in order."""
         return [info for v, ep, iv, il in jobs for info in self._sd_dopplers(v, geo, ep, lead_ep, iv, il)]
 
@@ -950,7 +1076,7 @@ class ClusterFilterBase(ABC):
         return True
 
     # ----------------------------------------------------------------- UWB
-    def update_uwb(self, ranges: UwbRanges) -> list[UpdateInfo]:
+    def update_uwb(self, ranges: UwbRanges) -> Updates:
         """One scalar update per UWB range (the caller has predicted to the time tag).
 
         Usable ranges (:meth:`_pair_usable`) go, in measurement order, through the engine's
@@ -958,15 +1084,15 @@ class ClusterFilterBase(ABC):
         """
         use = self._usable_pairs(KIND_UWB, ranges.a, ranges.b, ranges.range_m)
         if not use:
-            return []
-        return self._uwb_sequence([ranges.a[k] for k in use], [ranges.b[k] for k in use],
-                                  np.asarray(ranges.range_m, dtype=float)[use])
+            return Updates()
+        return Updates([self._uwb_sequence([ranges.a[k] for k in use], [ranges.b[k] for k in use],
+                                           np.asarray(ranges.range_m, dtype=float)[use])])
 
-    def update_uwb_events(self, dts_s: Sequence[float], events: Sequence[UwbRanges]) -> list[list[UpdateInfo]]:
+    def update_uwb_events(self, dts_s: Sequence[float], events: Sequence[UwbRanges]) -> list[Sequence[UpdateInfo]]:
         """Several UWB events in a row: for each, :meth:`predict` over ``dts_s[e]`` then
         :meth:`update_uwb` of ``events[e]``; the update records of each event.
         (The production engine runs the whole sequence as one compiled call.)"""
-        out = []
+        out: list[Sequence[UpdateInfo]] = []
         for dt, ranges in zip(dts_s, events, strict=True):
             self.predict(dt)
             out.append(self.update_uwb(ranges))
@@ -988,7 +1114,7 @@ class ClusterFilterBase(ABC):
                 if (isfinite(zk) and a[k] in ready and b[k] in ready and a[k] != b[k])
                 or self._pair_usable(kind, a[k], b[k], zk, known)]
 
-    def _uwb_sequence(self, a_list: list[str], b_list: list[str], z: F64) -> list[UpdateInfo]:
+    def _uwb_sequence(self, a_list: list[str], b_list: list[str], z: F64) -> Sequence[UpdateInfo]:
         """Engine hook (default: one Python scalar update per range): sequential updates of
         usable ranges, each re-linearized at the current state, with the second-order terms
         and deferral rule of :meth:`_linear_enough`, then the bound constraints."""
@@ -1050,7 +1176,7 @@ class ClusterFilterBase(ABC):
         return out
 
     # ----------------------------------------------------------------- bearings
-    def update_bearings(self, bearings: Bearings) -> list[UpdateInfo]:
+    def update_bearings(self, bearings: Bearings) -> Updates:
         """One scalar update per bearing; azimuth known (reported) unless a has an azimuth state.
 
         Usable bearings (:meth:`_pair_usable`) go, in measurement order, through the engine's
@@ -1058,12 +1184,12 @@ class ClusterFilterBase(ABC):
         """
         use = self._usable_pairs(KIND_BEARING, bearings.a, bearings.b, bearings.bearing_rad)
         if not use:
-            return []
-        return self._bearing_sequence([bearings.a[k] for k in use], [bearings.b[k] for k in use],
-                                      np.asarray(bearings.bearing_rad, dtype=float)[use],
-                                      np.asarray(bearings.azimuth_reported_rad, dtype=float)[use])
+            return Updates()
+        return Updates([self._bearing_sequence([bearings.a[k] for k in use], [bearings.b[k] for k in use],
+                                               np.asarray(bearings.bearing_rad, dtype=float)[use],
+                                               np.asarray(bearings.azimuth_reported_rad, dtype=float)[use])])
 
-    def _bearing_sequence(self, a_list: list[str], b_list: list[str], z: F64, az_reported: F64) -> list[UpdateInfo]:
+    def _bearing_sequence(self, a_list: list[str], b_list: list[str], z: F64, az_reported: F64) -> Sequence[UpdateInfo]:
         """Engine hook (default: one Python scalar update per bearing): sequential updates,
         each re-linearized at the current state (second-order terms and deferral as for UWB;
         an estimated azimuth is initialized at its first bearing)."""
@@ -1164,9 +1290,9 @@ class ClusterFilterBase(ABC):
 
     # ----------------------------------------------------------------- all at once
     def update_epoch(self, *, gnss: dict[str, GnssEpoch] | None = None, lead_base_ecef_m: F64 | None = None,
-                     uwb: UwbRanges | None = None, bearings: Bearings | None = None) -> list[UpdateInfo]:
+                     uwb: UwbRanges | None = None, bearings: Bearings | None = None) -> Updates:
         """GNSS, then UWB, then bearings (thesis section 3.5.1 order)."""
-        out: list[UpdateInfo] = []
+        out = Updates()
         if gnss:
             if lead_base_ecef_m is None:
                 raise ValueError("lead_base_ecef_m is required with GNSS epochs")
@@ -1272,7 +1398,7 @@ def _cati(parts: list[NDArray]) -> NDArray[np.int64]:
 
 
 def _all_accepted_records(kind: str, vehicles: list[str], bat: _GnssBatch, order: NDArray[np.int64], nu: F64,
-                          s: F64, st: NDArray[np.int64]) -> list[UpdateInfo] | None:
+                          s: F64, st: NDArray[np.int64]) -> UpdateBatch | None:
     """The records of an all-vehicle GNSS kernel call (outputs sliced by ``bat.moff``, ``order``
     local to each vehicle) when every measurement was accepted, as ``ClusterEkf._records``
     builds them vehicle by vehicle; None if any was not (then the per-vehicle path counts why)."""
@@ -1280,7 +1406,7 @@ def _all_accepted_records(kind: str, vehicles: list[str], bat: _GnssBatch, order
         return None
     jrep = bat.vehicle_of
     prn = bat.prn_cat[bat.row0[jrep] + bat.iv_cat[bat.moff[jrep] + order]]  # satellite of each output: prns[j][iv_j[order]]
-    veh = itertools.chain.from_iterable(map(repeat, [(v,) for v in vehicles], np.diff(bat.moff).tolist()))
+    veh = list(itertools.chain.from_iterable(map(repeat, [(v,) for v in vehicles], np.diff(bat.moff).tolist())))
     return _accepted_infos(kind, veh, nu, s, prn.tolist())
 
 
@@ -1426,8 +1552,10 @@ class ClusterEkf(ClusterFilterBase):
                        float(bb[1]), cfg.uwb_scale_bounds is not None, float(sbnd[0]), float(sbnd[1]))
 
     def _uwb_records(self, recs: tuple, a_list: list[str], b_list: list[str],
-                     pairs: list[tuple[str, str]]) -> tuple[list[int], list[UpdateInfo]]:
-        """(range index of each record, the records) of a UWB kernel's output (counters as :meth:`_record`)."""
+                     pairs: list[tuple[str, str]]) -> tuple[list[int], Sequence[UpdateInfo]]:
+        """(range index of each record, the records) of a UWB kernel's output (counters as
+        :meth:`_record`); the range indices never decrease (the kernel goes through the ranges
+        in order; a range's bound-constraint records follow it)."""
         n_rec, kind, meas, nu, s, st = recs
         nu, s, st, meas = nu[:n_rec], s[:n_rec], st[:n_rec], meas[:n_rec].tolist()
         if not kind[:n_rec].any():  # ranges only (REC_UWB == 0), no constraint records
@@ -1440,7 +1568,7 @@ class ClusterEkf(ClusterFilterBase):
                     meas = list(compress(meas, keep.tolist()))
                     nu, s = nu[keep], s[keep]
                 ab = list(zip(a_list, b_list, strict=True))
-                return meas, _accepted_infos(KIND_UWB, map(ab.__getitem__, meas), nu, s, repeat(-1))
+                return meas, _accepted_infos(KIND_UWB, list(map(ab.__getitem__, meas)), nu, s, None)
         ks, out = [], []
         for kd, k, nuk, sk, stk in zip(kind[:n_rec].tolist(), meas, nu.tolist(), s.tolist(), st.tolist(), strict=True):
             if kd == kernels.REC_UWB:
@@ -1452,13 +1580,13 @@ class ClusterEkf(ClusterFilterBase):
                 out.append(info)
         return ks, out
 
-    def _uwb_sequence(self, a_list: list[str], b_list: list[str], z: F64) -> list[UpdateInfo]:
+    def _uwb_sequence(self, a_list: list[str], b_list: list[str], z: F64) -> Sequence[UpdateInfo]:
         """All usable ranges in one :func:`v2v.estimation.kernels.uwb_batch` call."""
         pairs, args = self._uwb_kernel_args(a_list, b_list, z)
         recs = kernels.uwb_batch(self._x, self._P, *args)
         return self._uwb_records(recs, a_list, b_list, pairs)[1]
 
-    def update_uwb_events(self, dts_s: Sequence[float], events: Sequence[UwbRanges]) -> list[list[UpdateInfo]]:
+    def update_uwb_events(self, dts_s: Sequence[float], events: Sequence[UwbRanges]) -> list[Sequence[UpdateInfo]]:
         """:meth:`ClusterFilterBase.update_uwb_events` in one
         :func:`v2v.estimation.kernels.uwb_event_run` call (the same predictions and batches)."""
         for dt in dts_s:
@@ -1479,14 +1607,13 @@ class ClusterEkf(ClusterFilterBase):
         recs = kernels.uwb_event_run(self._x, self._P, np.asarray(dts_s, dtype=float), np.asarray(starts, dtype=np.int64),
                                      *args, self._veh0, self._nveh, self._vpar, self._rw_diag, self._rw_psd,
                                      self._az_ia, self._az_ir, self._apar)
-        out: list[list[UpdateInfo]] = [[] for _ in events]
-        ev_of = np.searchsorted(np.asarray(starts), np.arange(len(a_list)), side="right") - 1
         ks, infos = self._uwb_records(recs, a_list, b_list, pairs)
-        for e, info in zip(ev_of[ks].tolist(), infos, strict=True):
-            out[e].append(info)
-        return out
+        # the records of event e: those whose range index ks lies in [starts[e], starts[e + 1])
+        # (ks increases: one contiguous slice per event)
+        cut = np.searchsorted(np.asarray(ks, dtype=np.int64), np.asarray(starts, dtype=np.int64)).tolist()
+        return [infos[cut[e]:cut[e + 1]] for e in range(len(events))]
 
-    def _bearing_sequence(self, a_list: list[str], b_list: list[str], z: F64, az_reported: F64) -> list[UpdateInfo]:
+    def _bearing_sequence(self, a_list: list[str], b_list: list[str], z: F64, az_reported: F64) -> Sequence[UpdateInfo]:
         """All usable bearings in one :func:`v2v.estimation.kernels.bearing_batch` call."""
         cfg = self.config
         m = len(a_list)
@@ -1503,7 +1630,7 @@ class ClusterEkf(ClusterFilterBase):
         for v, i in self._az_index.items():
             self._azimuth_ready[v] = bool(ready[i])
         if not st.any():  # all accepted: no counters
-            return _accepted_infos(KIND_BEARING, zip(a_list, b_list, strict=True), nu, s, repeat(-1))
+            return _accepted_infos(KIND_BEARING, list(zip(a_list, b_list, strict=True)), nu, s, None)
         out = []
         for k, (nuk, sk, stk) in enumerate(zip(nu.tolist(), s.tolist(), st.tolist(), strict=True)):
             info = self._record(KIND_BEARING, (a_list[k], b_list[k]), nuk, sk, stk, -1, "bearing_deferred_nonlinear")
@@ -1512,7 +1639,7 @@ class ClusterEkf(ClusterFilterBase):
         return out
 
     def _sd_pseudoranges_all(self, geo: GnssGeometry, lead_ep: GnssEpoch,
-                             jobs: list[tuple[str, GnssEpoch, NDArray, NDArray]]) -> list[UpdateInfo]:
+                             jobs: list[tuple[str, GnssEpoch, NDArray, NDArray]]) -> Sequence[UpdateInfo]:
         """:meth:`ClusterFilterBase._sd_pseudoranges` of every vehicle in one compiled call
         (:func:`v2v.estimation.kernels.sd_pseudorange_vehicles`: per vehicle the same row,
         clock-jump, screen and batch kernels in the same order, on one shared deferred-update
@@ -1528,7 +1655,8 @@ class ClusterEkf(ClusterFilterBase):
             cfg.noise.sd_pseudorange_var_m2, self._k, cfg.clock_jump_detection, cfg.clock_reset_sigma_m**2)
         moff = bat.moff
         recs_all = _all_accepted_records(KIND_SD_PR, names, bat, order, nu, s, st)
-        out: list[UpdateInfo] = []
+        nis_all = recs_all.nis.tolist() if recs_all is not None else []
+        out = Updates()
         mo = moff.tolist()
         for j, ((v, ep, iv, _), jp, iso, nf) in enumerate(zip(jobs, jump.tolist(), isolated.tolist(), n_flagged.tolist(),
                                                              strict=True)):
@@ -1539,14 +1667,17 @@ class ClusterEkf(ClusterFilterBase):
                 self.counters["screened_first_update"] = self.counters.get("screened_first_update", 0) + nf
             self.integrity_available[v] = iso
             a, b = mo[j], mo[j + 1]
-            recs = recs_all[a:b] if recs_all is not None else \
-                self._records(KIND_SD_PR, (v,), order[a:b], nu[a:b], s[a:b], st[a:b], ep.prn[iv])
-            self._record_tests(v, recs)
-            out += recs
-        return out
+            if recs_all is not None:  # all accepted: the NIS window from the batch's columns
+                w = self._nis_window.setdefault(v, deque(maxlen=self.config.divergence_window))
+                w.extend(zip(nis_all[a:b], repeat(True)))
+            else:
+                recs = self._records(KIND_SD_PR, (v,), order[a:b], nu[a:b], s[a:b], st[a:b], ep.prn[iv])
+                self._record_tests(v, recs)
+                out += recs
+        return out if recs_all is None else Updates([recs_all])
 
     def _sd_dopplers_all(self, geo: GnssGeometry, lead_ep: GnssEpoch,
-                         jobs: list[tuple[str, GnssEpoch, NDArray, NDArray]]) -> list[UpdateInfo]:
+                         jobs: list[tuple[str, GnssEpoch, NDArray, NDArray]]) -> Sequence[UpdateInfo]:
         """:meth:`ClusterFilterBase._sd_dopplers` of every vehicle in one compiled call
         (:func:`v2v.estimation.kernels.sd_doppler_vehicles`); satellites with a non-finite
         Doppler are left out (and counted) first, as there."""
@@ -1576,22 +1707,22 @@ class ClusterEkf(ClusterFilterBase):
             _c3(lead_ep.sv_pos_ecef_m), _c3(lead_ep.sv_vel_ecef_mps), zd, bat.iv_cat, bat.il_cat, moff,
             self.config.noise.sd_doppler_var_m2ps2, self._k)
         recs_all = _all_accepted_records(KIND_SD_DOPPLER, names, bat, order, nu, s, st)
-        out: list[UpdateInfo] = []
+        out = Updates()
         mo = moff.tolist()
         for j, ((v, ep, iv, _), nf) in enumerate(zip(kept, n_flagged.tolist(), strict=True)):
             if nf:
                 self.counters["screened_first_update"] = self.counters.get("screened_first_update", 0) + nf
-            a, b = mo[j], mo[j + 1]
-            out += recs_all[a:b] if recs_all is not None else \
-                self._records(KIND_SD_DOPPLER, (v,), order[a:b], nu[a:b], s[a:b], st[a:b], ep.prn[iv])
-        return out
+            if recs_all is None:
+                a, b = mo[j], mo[j + 1]
+                out += self._records(KIND_SD_DOPPLER, (v,), order[a:b], nu[a:b], s[a:b], st[a:b], ep.prn[iv])
+        return out if recs_all is None else Updates([recs_all])
 
     def _records(self, kind: str, vehicles: tuple[str, ...], order: NDArray[np.int64], nu: F64, s: F64,
-                 st: NDArray[np.int64], prns: NDArray[np.int64]) -> list[UpdateInfo]:
+                 st: NDArray[np.int64], prns: NDArray[np.int64]) -> Sequence[UpdateInfo]:
         """The records of one vehicle's GNSS batch (``prns`` indexed like the rows, the
         kernel outputs like ``order``): accepted ones built directly, the others by :meth:`_record`."""
         if not st.any():  # all accepted (kernels.ACCEPTED == 0): the common case, no counters
-            return _accepted_infos(kind, repeat(vehicles), nu, s, prns[order].tolist())
+            return _accepted_infos(kind, [vehicles] * len(nu), nu, s, prns[order].tolist())
         out = []
         accepted = kernels.ACCEPTED
         for o, nuk, sk, stk in zip(prns[order].tolist(), nu.tolist(), s.tolist(), st.tolist(), strict=True):
