@@ -9,6 +9,7 @@ from scipy import stats
 
 from v2v.metrics.errors import lead_frame_errors
 from v2v.metrics.lane import (
+    attach_truth,
     integrity_counts,
     lane_level_table,
     lane_quantities,
@@ -154,3 +155,25 @@ def test_table_rows_per_solution_and_vehicle_and_uninitialized_epochs():
     assert t.loc[1, "across_availability"] == pytest.approx(0.75)
     assert t.loc[1, "across_hmi_rate"] == pytest.approx(0.75)  # 2 m > AL at every available epoch
     assert t.attrs["k_pl"] == pytest.approx(protection_factor(1e-3))
+
+
+def test_attach_truth_is_a_left_join_on_time_and_vehicle_and_the_cluster_lead():
+    """By hand: each epoch row gets its own truth edge and its cluster lead's edge and azimuth
+    at the same time (times joined on whole milliseconds); a row with no truth gets NaN; rows
+    keep their order. Truth that repeats a (time, vehicle) key multiplies the row, as a join does."""
+    truth = pd.DataFrame({
+        "t_s": [0.0, 0.0, 0.1, 0.1, 0.1], "vehicle": ["L", "A", "L", "A", "M"], "cluster": ["c1", "c1", "c1", "c1", "c2"],
+        "is_lead": [True, False, True, False, True], "edge": ["e0", "e1", "e2", "e3", "e9"],
+        "azimuth_rad": [0.5, 0.6, 0.7, 0.8, 0.9],
+    })
+    epochs = pd.DataFrame({"t_s": [0.1 + 1e-7, 0.0, 0.2], "cluster": ["c1", "c1", "c1"], "vehicle": ["A", "A", "A"]},
+                          index=[7, 3, 5])
+    out = attach_truth(epochs, truth)
+    assert list(out.index) == [0, 1, 2] and list(out["t_s"]) == list(epochs["t_s"])
+    assert list(out["edge"][:2]) == ["e3", "e1"] and list(out["lead_edge"][:2]) == ["e2", "e0"]
+    np.testing.assert_array_equal(out["lead_azimuth_rad"], [0.7, 0.5, np.nan])
+    assert out[["edge", "lead_edge"]].iloc[2].isna().all()  # no truth at 0.2 s
+    no_cluster = attach_truth(epochs.drop(columns="cluster"), truth)  # the first lead of each time
+    assert list(no_cluster["lead_edge"][:2]) == ["e2", "e0"]
+    twice = attach_truth(epochs, pd.concat([truth, truth.iloc[[3]]], ignore_index=True))
+    assert len(twice) == 4 and list(twice["edge"][:3]) == ["e3", "e3", "e1"]

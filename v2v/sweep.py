@@ -484,6 +484,7 @@ def _open_client(scheduler: str | None, workers: int | None, host: str, n_pendin
     import logging
     import warnings
 
+    import dask
     from dask.distributed import Client, LocalCluster
 
     if scheduler:
@@ -500,8 +501,11 @@ def _open_client(scheduler: str | None, workers: int | None, host: str, n_pendin
     in_main = threading.current_thread() is threading.main_thread()
     old_sigint = signal.signal(signal.SIGINT, signal.SIG_IGN) if in_main else None
     try:
-        with warnings.catch_warnings():  # the scheduler's HTTP endpoint moves off a busy :8787 and says so
-            warnings.filterwarnings("ignore", message="Port .* is already in use")
+        # No dashboard, so no use for the workers' statistical profiler, which otherwise takes
+        # every thread's stack each 10 ms (a py-spy profile of a sweep worker: ~2.5 % of the
+        # time the worker holds the GIL); the nannies pass this setting on to their workers.
+        with warnings.catch_warnings(), dask.config.set({"distributed.worker.profile.enabled": False}):
+            warnings.filterwarnings("ignore", message="Port .* is already in use")  # the scheduler's HTTP endpoint
             cluster = LocalCluster(n_workers=n, threads_per_worker=1, processes=True, host=host,
                                    dashboard_address=None, silence_logs=logging.ERROR)
     finally:

@@ -53,6 +53,10 @@ choices documented here, not a standard's numbers.
 
 from __future__ import annotations
 
+from collections.abc import Mapping
+from itertools import repeat
+from typing import Any
+
 import numpy as np
 import pandas as pd
 from numpy.typing import ArrayLike, NDArray
@@ -114,8 +118,49 @@ def attach_truth(epochs: pd.DataFrame, truth: pd.DataFrame) -> pd.DataFrame:
     """Add ``lead_azimuth_rad``, ``edge``, ``lead_edge`` to epoch rows from ``truth.parquet``.
 
     The lead of a row is the truth vehicle flagged ``is_lead`` in the row's cluster at the
-    same time (``lead`` column if the epochs have one).
+    same time (``lead`` column if the epochs have one). A left join: rows keep their order;
+    a row without its truth gets NaN.
     """
+    cols = _truth_columns(epochs, truth)
+    if cols is None:  # repeated keys: the join multiplies rows
+        return _attach_truth_merge(epochs, truth)
+    out = epochs.drop(columns=[c for c in ("edge", "lead_edge", "lead_azimuth_rad") if c in epochs]).reset_index(drop=True)
+    for k, v in cols.items():
+        out[k] = v
+    return out
+
+
+def _truth_columns(epochs: pd.DataFrame, truth: pd.DataFrame) -> dict[str, ArrayLike] | None:
+    """``edge``, ``lead_edge``, ``lead_azimuth_rad`` of every epoch row, the left join of
+    :func:`attach_truth` done by key lookup; None if the truth repeats a (time, vehicle) or
+    a (time, cluster) lead key (the join would then add rows)."""
+    tk = _time_key(truth["t_s"])
+    ek = _time_key(epochs["t_s"])
+    is_lead = truth["is_lead"].astype(bool).to_numpy()
+    if "cluster" in epochs:
+        lead_keys = list(zip(tk[is_lead].tolist(), truth["cluster"].to_numpy()[is_lead].tolist(), strict=True))
+        row_lead_keys = list(zip(ek.tolist(), epochs["cluster"].tolist(), strict=True))
+    else:  # the first lead of each time
+        lead_keys, row_lead_keys = tk[is_lead].tolist(), ek.tolist()
+    veh_keys = list(zip(tk.tolist(), truth["vehicle"].tolist(), strict=True))
+    first_lead = dict(zip(reversed(lead_keys), reversed(np.flatnonzero(is_lead).tolist()), strict=True))
+    vrow = dict(zip(veh_keys, range(len(veh_keys)), strict=True))
+    if len(vrow) != len(veh_keys) or ("cluster" in epochs and len(first_lead) != len(lead_keys)):
+        return None
+    n = len(epochs)
+    iv = np.fromiter(map(vrow.get, zip(ek.tolist(), epochs["vehicle"].tolist(), strict=True), repeat(-1)), np.int64, n)
+    il = np.fromiter(map(first_lead.get, row_lead_keys, repeat(-1)), np.int64, n)
+    return {"edge": _take(truth["edge"], iv), "lead_edge": _take(truth["edge"], il),
+            "lead_azimuth_rad": _take(truth["azimuth_rad"], il)}
+
+
+def _take(col: pd.Series, idx: NDArray[np.int64]) -> ArrayLike:
+    """``col`` at positions ``idx`` (-1: missing, NaN in the column's own dtype), as a left join gives it."""
+    return pd.api.extensions.take(col.array, idx, allow_fill=True)
+
+
+def _attach_truth_merge(epochs: pd.DataFrame, truth: pd.DataFrame) -> pd.DataFrame:
+    """:func:`attach_truth` as two left merges (truth with repeated time / vehicle keys)."""
     tr = truth.copy()
     tr["_tk"] = _time_key(tr["t_s"])
     out = epochs.copy()
@@ -157,28 +202,39 @@ def lane_quantities(epochs: pd.DataFrame, truth: pd.DataFrame | None = None) -> 
         az = lead_azimuth_from_errors(
             df["est_e_m"] - df["true_e_m"], df["est_n_m"] - df["true_n_m"], df["along_err_m"], df["across_err_m"])
         df["lead_azimuth_rad"] = _fill_azimuth(df, az)
+    out = df.copy()
+    for k, v in _lane_columns(df, len(df)).items():
+        out[k] = v
+    return out
+
+
+#: the epoch columns :func:`_lane_columns` reads
+_LANE_INPUTS = ("lead_azimuth_rad", "true_e_m", "true_n_m", "est_e_m", "est_n_m", "lane_width_m", "edge", "lead_edge",
+                "true_lane_index", "lead_lane_index")
+
+
+def _lane_columns(df: Mapping[str, pd.Series] | pd.DataFrame, n: int) -> dict[str, NDArray]:
+    """The columns :func:`lane_quantities` adds, from the epoch columns ``df`` (a frame or a
+    dict of ``n``-row series; ``lead_azimuth_rad`` present)."""
     az = df["lead_azimuth_rad"].to_numpy(float)
     te, tn = df["true_e_m"].to_numpy(float), df["true_n_m"].to_numpy(float)
     ee, en = df["est_e_m"].to_numpy(float), df["est_n_m"].to_numpy(float)
     w = df["lane_width_m"].to_numpy(float)
-    out = df.copy()
-    out["true_across_m"] = _across(te, tn, az)
-    out["est_across_m"] = _across(ee, en, az)
-    out["true_along_m"] = _along(te, tn, az)
-    out["est_along_m"] = _along(ee, en, az)
+    out = {"true_across_m": _across(te, tn, az), "est_across_m": _across(ee, en, az),
+           "true_along_m": _along(te, tn, az), "est_along_m": _along(ee, en, az)}
     if "edge" in df and "lead_edge" in df:
         edge = df["edge"].astype(str)
         same = (edge == df["lead_edge"].astype(str)) & ~edge.str.startswith(":") & df["edge"].notna()
         same &= df["true_lane_index"].notna() & df["lead_lane_index"].notna()
+        out["same_edge"] = same.to_numpy(bool)
     else:
-        same = pd.Series(False, index=df.index)
-    out["same_edge"] = same.to_numpy(bool)
-    geom = round_half_away(out["true_across_m"].to_numpy() / w)
+        out["same_edge"] = np.zeros(n, dtype=bool)
+    geom = round_half_away(out["true_across_m"] / w)
     idx_diff = df["true_lane_index"].to_numpy(float) - df["lead_lane_index"].to_numpy(float) if (
-        "true_lane_index" in df and "lead_lane_index" in df) else np.full(len(df), np.nan)
+        "true_lane_index" in df and "lead_lane_index" in df) else np.full(n, np.nan)
     out["rel_lane_geom"] = geom
-    out["rel_lane_true"] = np.where(out["same_edge"].to_numpy(), idx_diff, geom)
-    out["rel_lane_est"] = round_half_away(out["est_across_m"].to_numpy() / w)
+    out["rel_lane_true"] = np.where(out["same_edge"], idx_diff, geom)
+    out["rel_lane_est"] = round_half_away(out["est_across_m"] / w)
     return out
 
 
@@ -233,30 +289,49 @@ def lane_level_table(epochs: pd.DataFrame, truth: pd.DataFrame | None = None, *,
     k-sigma and PL misleading-information rates, mean PL, availability at the alert limit
     and HMI rate (see the module docstring). Fractions of initialized epochs unless noted.
     """
-    q = lane_quantities(epochs, truth)
+    df = epochs.reset_index(drop=True)
+    truth_cols = _truth_columns(df, truth) if truth is not None else None
+    if truth_cols is not None:  # lane_quantities' columns without building its frame
+        src: dict[str, pd.Series] = {c: df[c] for c in _LANE_INPUTS if c in df}
+        src.update({k: pd.Series(v) for k, v in truth_cols.items()})
+        q: Mapping[str, Any] = {**{c: df[c] for c in ("solution", "vehicle", "initialized", "across_err_m", "along_err_m",
+                                                      "sigma_across_m", "sigma_along_m")}, **_lane_columns(src, len(df))}
+    else:
+        q = lane_quantities(df, truth)
+    col = {c: np.asarray(q[c]) for c in ("initialized", "across_err_m", "along_err_m", "sigma_across_m", "sigma_along_m",
+                                         "same_edge", "rel_lane_geom", "rel_lane_true", "rel_lane_est")}
+    # the rows of each (solution, vehicle) in order of first appearance, as groupby(sort=False)
+    # gives them (rows with a missing key belong to no group)
+    groups: dict[tuple[object, object], list[int]] = {}
+    for k, key in enumerate(zip(q["solution"].tolist(), q["vehicle"].tolist(), strict=True)):
+        groups.setdefault(key, []).append(k)
     rows = []
-    for (sol, veh), g in q.groupby(["solution", "vehicle"], sort=False):
-        init = g["initialized"].to_numpy(bool)
+    for (sol, veh), members in groups.items():
+        if pd.isna(sol) or pd.isna(veh):
+            continue
+        g = np.asarray(members, dtype=np.intp)
+        init = col["initialized"][g].astype(bool)
         ok = g[init]
         n = len(ok)
 
-        def frac(mask: pd.Series | NDArray, _n: int = n) -> float:
+        def frac(mask: NDArray, _n: int = n) -> float:
             return float(np.sum(mask) / _n) if _n else float("nan")
 
-        across = np.abs(ok["across_err_m"].to_numpy(float))
-        along = np.abs(ok["along_err_m"].to_numpy(float))
+        across = np.abs(col["across_err_m"][ok].astype(float))
+        along = np.abs(col["along_err_m"][ok].astype(float))
+        geom, true, est = col["rel_lane_geom"][ok], col["rel_lane_true"][ok], col["rel_lane_est"][ok]
         row = {
             "solution": sol, "vehicle": veh, "epochs": int(len(g)), "initialized": float(init.mean()) if len(g) else float("nan"),
-            "same_edge": frac(ok["same_edge"]),
-            "lane_model_ok": frac(ok["rel_lane_geom"] == ok["rel_lane_true"]),
-            "correct_lane": frac(ok["rel_lane_est"] == ok["rel_lane_true"]),
-            "correct_lane_geom": frac(ok["rel_lane_est"] == ok["rel_lane_geom"]),
-            "wrong_lane_by_2plus": frac(np.abs(ok["rel_lane_est"] - ok["rel_lane_true"]) >= 2),
+            "same_edge": frac(col["same_edge"][ok]),
+            "lane_model_ok": frac(geom == true),
+            "correct_lane": frac(est == true),
+            "correct_lane_geom": frac(est == geom),
+            "wrong_lane_by_2plus": frac(np.abs(est - true) >= 2),
             "across_abs_p50_m": _pct(across, 50.0), "across_abs_p95_m": _pct(across, 95.0),
             "across_abs_p99_m": _pct(across, 99.0), "along_abs_p95_m": _pct(along, 95.0),
         }
         for axis, limit in (("across", across_alert_limit_m), ("along", along_alert_limit_m)):
-            ic = integrity_counts(g[f"{axis}_err_m"], g[f"sigma_{axis}_m"], init, alert_limit_m=limit,
+            ic = integrity_counts(col[f"{axis}_err_m"][g], col[f"sigma_{axis}_m"][g], init, alert_limit_m=limit,
                                   integrity_risk=integrity_risk, k_sigma=k_sigma)
             row[f"{axis}_mi_rate_{k_sigma:g}sigma"] = ic["mi_rate_ksigma"]
             row[f"{axis}_mi_rate_pl"] = ic["mi_rate_pl"]
