@@ -295,6 +295,7 @@ def test_layout_named_slices_and_add_remove_remap():
     assert lay.n == 8 + 8 + 1 + 1 + 2
     assert lay.position("B") == slice(8, 11) and lay.clock("A") == 6 and lay.drift("B") == 15
     assert lay.uwb_bias(("L", "A")) == lay.uwb_bias(("A", "L"))
+    assert lay.position_starts == {"A": 0, "B": 8} and lay.velocity_starts == {"A": 3, "B": 11}  # the blocks' 8 states: p v c d
     rng = np.random.default_rng(1)
     x = rng.standard_normal(lay.n)
     a = rng.standard_normal((lay.n, lay.n))

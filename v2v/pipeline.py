@@ -780,6 +780,7 @@ _KIND_COLUMNS = {"sd_pseudorange": "pr", "sd_pseudorange_pair": "pr", "sd_dopple
 
 
 _VEHICLES_KIND_ACCEPTED = itemgetter(1, 0, 5)  # (vehicles, kind, accepted) of an UpdateInfo
+_COUNT_KEYS: dict[tuple[str, bool], str] = {}  # (kind, accepted) -> "used_<kind>" | "rejected_<kind>"
 
 
 def _update_counts(infos: Iterable[UpdateInfo]) -> dict[str, dict[str, int]]:
@@ -788,7 +789,8 @@ def _update_counts(infos: Iterable[UpdateInfo]) -> dict[str, dict[str, int]]:
     counts: dict[str, dict[str, int]] = {}
     per = infos.counts() if isinstance(infos, Updates) else Counter(map(_VEHICLES_KIND_ACCEPTED, infos))
     for (vehs, kind, accepted), n in per.items():
-        key = ("used_" if accepted else "rejected_") + _short(kind)
+        key = _COUNT_KEYS.get((kind, accepted)) or _COUNT_KEYS.setdefault(
+            (kind, accepted), ("used_" if accepted else "rejected_") + _short(kind))
         for v in vehs:
             c = counts.setdefault(v, {})
             c[key] = c.get(key, 0) + n
@@ -810,7 +812,7 @@ def _epoch_rows(name: str, t_s: float, ekf: ClusterEkf, step: TrafficStep, lead:
         sts = [step.vehicles[v] for v in est_v]
         a = float(lead_st.azimuth_rad)
         nums = epoch_errors(
-            x, P, np.array([lay.position(v).start for v in est_v]), np.array([lay.velocity(v).start for v in est_v]),
+            x, P, np.array([lay.position_starts[v] for v in est_v]), np.array([lay.velocity_starts[v] for v in est_v]),
             np.array([st.ecef_m for st in sts], dtype=float), np.asarray(lead_st.ecef_m, dtype=float),
             ecef_to_enu_rotation(lead_st.lat_rad, lead_st.lon_rad), np.array([st.vel_enu_mps for st in sts], dtype=float),
             np.asarray(lead_st.vel_enu_mps, dtype=float), float(np.sin(a)), float(np.cos(a)),

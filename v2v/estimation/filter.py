@@ -354,15 +354,9 @@ class Updates(Sequence[UpdateInfo]):
 
     def counts(self) -> Counter[tuple[tuple[str, ...], str, bool]]:
         """Number of updates per (vehicles, kind, accepted), batches counted from their columns."""
-        c: Counter[tuple[tuple[str, ...], str, bool]] = Counter()
-        for p in self.parts:
-            if isinstance(p, UpdateBatch):
-                kind = p.kind
-                for vehs, n in Counter(p.vehicles).items():
-                    c[(vehs, kind, True)] += n
-            else:
-                c.update(map(_VEHICLES_KIND_ACCEPTED, p))
-        return c
+        return Counter(itertools.chain.from_iterable(
+            zip(p.vehicles, repeat(p.kind), repeat(True)) if isinstance(p, UpdateBatch) else map(_VEHICLES_KIND_ACCEPTED, p)
+            for p in self.parts))
 
 
 _VEHICLES_KIND_ACCEPTED = itemgetter(1, 0, 5)  # (vehicles, kind, accepted) of an UpdateInfo

@@ -85,8 +85,9 @@ class StateLayout:
     blocks: tuple[BlockId, ...]
     _offsets: dict[BlockId, int] = field(init=False, repr=False, compare=False)
     _vehicles: tuple[str, ...] = field(init=False, repr=False, compare=False)
-    #: ``position(v).start`` of every non-lead vehicle (read per epoch by the filter)
+    #: ``position(v).start`` / ``velocity(v).start`` of every non-lead vehicle (read per epoch)
     position_starts: dict[str, int] = field(init=False, repr=False, compare=False)
+    velocity_starts: dict[str, int] = field(init=False, repr=False, compare=False)
     n: int = field(init=False)
 
     def __post_init__(self) -> None:
@@ -107,6 +108,7 @@ class StateLayout:
         object.__setattr__(self, "_offsets", offsets)
         object.__setattr__(self, "_vehicles", tuple(k for kind, k in self.blocks if kind == VEHICLE))
         object.__setattr__(self, "position_starts", {v: offsets[(VEHICLE, v)] + _POS.start for v in self._vehicles})
+        object.__setattr__(self, "velocity_starts", {v: offsets[(VEHICLE, v)] + _VEL.start for v in self._vehicles})
         object.__setattr__(self, "n", i)
 
     # ------------------------------------------------------------------ building
