@@ -1095,7 +1095,7 @@ class ClusterFilterBase(ABC):
     def _usable_pairs(self, kind: str, a: tuple[str, ...], b: tuple[str, ...], z: F64) -> list[int]:
         """Indices of the measurements that pass :meth:`_pair_usable` (which counts the others)."""
         lay = self.layout
-        ready = {lay.lead, *(v for v in lay.vehicles if self._vehicle_ready.get(v, False))}
+        ready = {lay.lead, *compress(lay.vehicles, map(self._vehicle_ready.get, lay.vehicles))}
         zf = np.asarray(z, dtype=float)
         # the usual case, tested on whole tuples at C speed: every measurement usable
         if ready.issuperset(a) and ready.issuperset(b) and not any(map(eq, a, b)) and np.isfinite(zf).all():
@@ -1400,7 +1400,7 @@ def _all_accepted_records(kind: str, vehicles: list[str], bat: _GnssBatch, order
         return None
     jrep = bat.vehicle_of
     prn = bat.prn_cat[bat.row0[jrep] + bat.iv_cat[bat.moff[jrep] + order]]  # satellite of each output: prns[j][iv_j[order]]
-    veh = list(itertools.chain.from_iterable(map(repeat, [(v,) for v in vehicles], np.diff(bat.moff).tolist())))
+    veh = list(itertools.chain.from_iterable(map(repeat, [(v,) for v in vehicles], bat.counts)))
     return _accepted_infos(kind, veh, nu, s, prn.tolist())
 
 
@@ -1411,14 +1411,25 @@ class _GnssBatch:
     ``sv_cat`` the receivers' satellite positions one after another. Built once for the SD
     pseudoranges and reused by the SD Dopplers when their jobs are the same objects."""
 
-    __slots__ = ("lead_ep", "jobs", "row0", "moff", "iv_cat", "il_cat", "sv_cat", "_vehicle_of", "_prn_cat")
+    __slots__ = ("lead_ep", "jobs", "row0", "counts", "moff", "iv_cat", "il_cat", "sv_cat", "_vehicle_of", "_prn_cat")
+    lead_ep: GnssEpoch
+    jobs: list[tuple[str, GnssEpoch, NDArray, NDArray]]
+    row0: NDArray[np.int64]
+    counts: list[int]
+    moff: NDArray[np.int64]
+    iv_cat: NDArray[np.int64]
+    il_cat: NDArray[np.int64]
+    sv_cat: F64
+    _vehicle_of: NDArray[np.int64] | None
+    _prn_cat: NDArray[np.int64] | None
 
     @classmethod
     def of(cls, lead_ep: GnssEpoch, jobs: list[tuple[str, GnssEpoch, NDArray, NDArray]]) -> _GnssBatch:
         b = cls()
         b.lead_ep, b.jobs = lead_ep, list(jobs)
         b.row0 = _offsets([len(ep.prn) for _, ep, _, _ in jobs])
-        b.moff = _offsets([len(iv) for _, _, iv, _ in jobs])
+        b.counts = [len(iv) for _, _, iv, _ in jobs]  # common satellites per job
+        b.moff = _offsets(b.counts)
         b.iv_cat = _cati([iv for _, _, iv, _ in jobs])
         b.il_cat = _cati([il for _, _, _, il in jobs])
         b.sv_cat = _cat3([ep.sv_pos_ecef_m for _, ep, _, _ in jobs])
@@ -1434,7 +1445,7 @@ class _GnssBatch:
     def vehicle_of(self) -> NDArray[np.int64]:
         """Job index of each gathered measurement."""
         if self._vehicle_of is None:
-            self._vehicle_of = np.repeat(np.arange(len(self.jobs)), np.diff(self.moff))
+            self._vehicle_of = np.repeat(np.arange(len(self.jobs)), self.counts)
         return self._vehicle_of
 
     @property
@@ -1529,8 +1540,8 @@ class ClusterEkf(ClusterFilterBase):
         lay, cfg = self.layout, self.config
         m = len(a_list)
         pos0 = self._pos0
-        sa = np.array([pos0[a] for a in a_list], dtype=np.int64)
-        sb = np.array([pos0[b] for b in b_list], dtype=np.int64)
+        sa = np.fromiter(map(pos0.__getitem__, a_list), dtype=np.int64, count=m)
+        sb = np.fromiter(map(pos0.__getitem__, b_list), dtype=np.int64, count=m)
         ib = np.full(m, -1, dtype=np.int64)
         isc = np.full(m, -1, dtype=np.int64)
         pairs: list[tuple[str, str]] = []
@@ -1562,7 +1573,9 @@ class ClusterEkf(ClusterFilterBase):
                     meas = list(compress(meas, keep.tolist()))
                     nu, s = nu[keep], s[keep]
                 ab = list(zip(a_list, b_list, strict=True))
-                return meas, _accepted_infos(KIND_UWB, list(map(ab.__getitem__, meas)), nu, s, None)
+                # one record per range, in order, when none was deferred: meas is 0, 1, ..., m - 1
+                veh = ab if not n_def and n_rec == len(ab) else list(map(ab.__getitem__, meas))
+                return meas, _accepted_infos(KIND_UWB, veh, nu, s, None)
         ks, out = [], []
         for kd, k, nuk, sk, stk in zip(kind[:n_rec].tolist(), meas, nu.tolist(), s.tolist(), st.tolist(), strict=True):
             if kd == kernels.REC_UWB:
@@ -1611,9 +1624,9 @@ class ClusterEkf(ClusterFilterBase):
         """All usable bearings in one :func:`v2v.estimation.kernels.bearing_batch` call."""
         cfg = self.config
         m = len(a_list)
-        sa = np.fromiter((self._pos0[a] for a in a_list), dtype=np.int64, count=m)
-        sb = np.fromiter((self._pos0[b] for b in b_list), dtype=np.int64, count=m)
-        iaz = np.fromiter((self._az_index.get(a, -1) for a in a_list), dtype=np.int64, count=m)
+        sa = np.fromiter(map(self._pos0.__getitem__, a_list), dtype=np.int64, count=m)
+        sb = np.fromiter(map(self._pos0.__getitem__, b_list), dtype=np.int64, count=m)
+        iaz = np.fromiter(map(self._az_index.get, a_list, repeat(-1)), dtype=np.int64, count=m)
         ready = np.zeros(self.layout.n, dtype=np.bool_)
         for v, i in self._az_index.items():
             ready[i] = self._azimuth_ready[v]
