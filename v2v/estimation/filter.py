@@ -323,7 +323,7 @@ class Updates(Sequence[UpdateInfo]):
                 self.parts.append(other)
                 self._n += len(other)
         else:
-            recs = other if isinstance(other, list) else list(other)
+            recs = list(other)  # a copy: the caller may go on appending to its list
             if recs:
                 self.parts.append(recs)
                 self._n += len(recs)
