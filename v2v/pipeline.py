@@ -12,10 +12,8 @@ Every solution processes the *same* measurements (and the same exchange losses).
 from __future__ import annotations
 
 import itertools
-from collections import Counter
 from collections.abc import Callable, Iterable, Sequence
 from dataclasses import dataclass, field
-from operator import itemgetter
 from pathlib import Path
 from typing import Any
 
@@ -779,15 +777,14 @@ def run_solution(sol: SolutionSection, ekf: ClusterEkf, events: Sequence[Event],
 _KIND_COLUMNS = {"sd_pseudorange": "pr", "sd_pseudorange_pair": "pr", "sd_doppler": "doppler", "sd_phase": "phase"}
 
 
-_VEHICLES_KIND_ACCEPTED = itemgetter(1, 0, 5)  # (vehicles, kind, accepted) of an UpdateInfo
 _COUNT_KEYS: dict[tuple[str, bool], str] = {}  # (kind, accepted) -> "used_<kind>" | "rejected_<kind>"
 
 
-def _update_counts(infos: Iterable[UpdateInfo]) -> dict[str, dict[str, int]]:
+def _update_counts(infos: Sequence[UpdateInfo]) -> dict[str, dict[str, int]]:
     """``{vehicle: {"used_<kind>" | "rejected_<kind>": count}}`` of an output interval's updates
     (counted per distinct (vehicles, kind, accepted) first: tens of thousands of records)."""
     counts: dict[str, dict[str, int]] = {}
-    per = infos.counts() if isinstance(infos, Updates) else Counter(map(_VEHICLES_KIND_ACCEPTED, infos))
+    per = (infos if isinstance(infos, Updates) else Updates([infos])).counts()
     for (vehs, kind, accepted), n in per.items():
         key = _COUNT_KEYS.get((kind, accepted)) or _COUNT_KEYS.setdefault(
             (kind, accepted), ("used_" if accepted else "rejected_") + _short(kind))
@@ -798,7 +795,7 @@ def _update_counts(infos: Iterable[UpdateInfo]) -> dict[str, dict[str, int]]:
 
 
 def _epoch_rows(name: str, t_s: float, ekf: ClusterEkf, step: TrafficStep, lead: str, vehicles: Sequence[str],
-                infos: Iterable[UpdateInfo]) -> list[dict[str, Any]]:
+                infos: Sequence[UpdateInfo]) -> list[dict[str, Any]]:
     """One row per cluster vehicle at output epoch ``t_s``: truth and estimate relative to the
     lead (ENU), errors and 1-sigma in the lead's frame (along, across-left, up), NEES of the
     position, update counts; the numbers of all vehicles from one compiled call

@@ -257,10 +257,9 @@ class UpdateBatch(Sequence[UpdateInfo]):
     """
 
     __slots__ = ("kind", "vehicles", "innovation", "variance", "prn", "_nis", "_recs")
-    accepted = True
 
-    def __init__(self, kind: str, vehicles: list[tuple[str, ...]], innovation: F64, variance: F64,
-                 prn: list[int] | None = None) -> None:
+    def __init__(self, kind: str, vehicles: Sequence[tuple[str, ...]], innovation: F64, variance: F64,
+                 prn: Sequence[int] | None = None) -> None:
         self.kind, self.vehicles, self.innovation, self.variance, self.prn = kind, vehicles, innovation, variance, prn
         self._nis: F64 | None = None
         self._recs: list[UpdateInfo] | None = None
@@ -287,8 +286,11 @@ class UpdateBatch(Sequence[UpdateInfo]):
 
     def __getitem__(self, i):
         if isinstance(i, slice):  # a batch of the selected updates (views of the columns)
-            return UpdateBatch(self.kind, self.vehicles[i], self.innovation[i], self.variance[i],
-                               None if self.prn is None else self.prn[i])
+            b = UpdateBatch(self.kind, self.vehicles[i], self.innovation[i], self.variance[i],
+                            None if self.prn is None else self.prn[i])
+            if self._nis is not None:
+                b._nis = self._nis[i]
+            return b
         return self.records()[i]
 
     def __eq__(self, other: object) -> bool:
@@ -360,15 +362,6 @@ class Updates(Sequence[UpdateInfo]):
 
 
 _VEHICLES_KIND_ACCEPTED = itemgetter(1, 0, 5)  # (vehicles, kind, accepted) of an UpdateInfo
-
-
-def _accepted_infos(kind: str, vehicles: Iterable[tuple[str, ...]], nu: F64, s: F64,
-                    prns: list[int] | None) -> UpdateBatch:
-    """The records of accepted updates from a kernel's output arrays, one per element of
-    ``nu`` (``vehicles`` may be longer, e.g. ``repeat(...)``; ``prns`` None: no satellite)."""
-    n = len(nu)
-    vl = vehicles if isinstance(vehicles, list) and len(vehicles) == n else list(itertools.islice(vehicles, n))
-    return UpdateBatch(kind, vl, nu, s, prns)
 
 
 def scalar_update(x: F64, P: F64, idx: NDArray[np.int64], val: F64, innovation: float, r_var: float,
@@ -1401,7 +1394,7 @@ def _all_accepted_records(kind: str, vehicles: list[str], bat: _GnssBatch, order
     jrep = bat.vehicle_of
     prn = bat.prn_cat[bat.row0[jrep] + bat.iv_cat[bat.moff[jrep] + order]]  # satellite of each output: prns[j][iv_j[order]]
     veh = list(itertools.chain.from_iterable(map(repeat, [(v,) for v in vehicles], bat.counts)))
-    return _accepted_infos(kind, veh, nu, s, prn.tolist())
+    return UpdateBatch(kind, veh, nu, s, prn.tolist())
 
 
 class _GnssBatch:
@@ -1575,7 +1568,7 @@ class ClusterEkf(ClusterFilterBase):
                 ab = list(zip(a_list, b_list, strict=True))
                 # one record per range, in order, when none was deferred: meas is 0, 1, ..., m - 1
                 veh = ab if not n_def and n_rec == len(ab) else list(map(ab.__getitem__, meas))
-                return meas, _accepted_infos(KIND_UWB, veh, nu, s, None)
+                return meas, UpdateBatch(KIND_UWB, veh, nu, s, None)
         ks, out = [], []
         for kd, k, nuk, sk, stk in zip(kind[:n_rec].tolist(), meas, nu.tolist(), s.tolist(), st.tolist(), strict=True):
             if kd == kernels.REC_UWB:
@@ -1637,7 +1630,7 @@ class ClusterEkf(ClusterFilterBase):
         for v, i in self._az_index.items():
             self._azimuth_ready[v] = bool(ready[i])
         if not st.any():  # all accepted: no counters
-            return _accepted_infos(KIND_BEARING, list(zip(a_list, b_list, strict=True)), nu, s, None)
+            return UpdateBatch(KIND_BEARING, list(zip(a_list, b_list, strict=True)), nu, s, None)
         out = []
         for k, (nuk, sk, stk) in enumerate(zip(nu.tolist(), s.tolist(), st.tolist(), strict=True)):
             info = self._record(KIND_BEARING, (a_list[k], b_list[k]), nuk, sk, stk, -1, "bearing_deferred_nonlinear")
@@ -1662,7 +1655,6 @@ class ClusterEkf(ClusterFilterBase):
             cfg.noise.sd_pseudorange_var_m2, self._k, cfg.clock_jump_detection, cfg.clock_reset_sigma_m**2)
         moff = bat.moff
         recs_all = _all_accepted_records(KIND_SD_PR, names, bat, order, nu, s, st)
-        nis_all = recs_all.nis.tolist() if recs_all is not None else []
         out = Updates()
         mo = moff.tolist()
         for j, ((v, ep, iv, _), jp, iso, nf) in enumerate(zip(jobs, jump.tolist(), isolated.tolist(), n_flagged.tolist(),
@@ -1675,8 +1667,7 @@ class ClusterEkf(ClusterFilterBase):
             self.integrity_available[v] = iso
             a, b = mo[j], mo[j + 1]
             if recs_all is not None:  # all accepted: the NIS window from the batch's columns
-                w = self._nis_window.setdefault(v, deque(maxlen=self.config.divergence_window))
-                w.extend(zip(nis_all[a:b], repeat(True)))
+                self._record_tests(v, recs_all[a:b])
             else:
                 recs = self._records(KIND_SD_PR, (v,), order[a:b], nu[a:b], s[a:b], st[a:b], ep.prn[iv])
                 self._record_tests(v, recs)
@@ -1729,7 +1720,7 @@ class ClusterEkf(ClusterFilterBase):
         """The records of one vehicle's GNSS batch (``prns`` indexed like the rows, the
         kernel outputs like ``order``): accepted ones built directly, the others by :meth:`_record`."""
         if not st.any():  # all accepted (kernels.ACCEPTED == 0): the common case, no counters
-            return _accepted_infos(kind, [vehicles] * len(nu), nu, s, prns[order].tolist())
+            return UpdateBatch(kind, [vehicles] * len(nu), nu, s, prns[order].tolist())
         out = []
         accepted = kernels.ACCEPTED
         for o, nuk, sk, stk in zip(prns[order].tolist(), nu.tolist(), s.tolist(), st.tolist(), strict=True):
