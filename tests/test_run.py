@@ -96,6 +96,16 @@ def test_other_seed_changes_measurements(short_run, tmp_path):
     m1 = pd.read_parquet(out / "measurements.parquet")
     m3 = pd.read_parquet(out3 / "measurements.parquet")
     assert not m1["value"].equals(m3["value"])
+    # the sensors' own noise follows the seed, not only the traffic: the pseudorange noise of the
+    # same (time, receiver, satellite) in the two runs is uncorrelated. Independent draws give a
+    # sample correlation ~ N(0, 1/n); |r| < 4 / sqrt(n) fails with probability 6e-5.
+    key = ["t_s", "vehicle", "prn"]
+    pr = [m[m["type"] == "pseudorange"].set_index(key)["err_noise_m"] for m in (m1, m3)]
+    both = pd.concat(pr, axis=1, join="inner").dropna()
+    n = len(both)
+    assert n > 500
+    r = np.corrcoef(both.iloc[:, 0], both.iloc[:, 1])[0, 1]
+    assert abs(r) < 4 / np.sqrt(n), (r, n)
 
 
 def test_vehicle_leaving_and_rejoining_the_cluster(tmp_path):
@@ -118,3 +128,47 @@ def test_vehicle_leaving_and_rejoining_the_cluster(tmp_path):
     assert back["across_err_m"].abs().max() < 1.0
     # the other follower never left
     assert ep[ep.vehicle == "c1.1"]["initialized"].iloc[20:].all()
+
+
+def test_gnss_outage_height_aiding_on_and_off(tmp_path):
+    """A 4 s GNSS outage of everyone, GPS+UWB with height aiding (the default) and without.
+
+    * Aided: "relative up = 0 +- 1 m" once per output interval bounds the vertical sigma: an
+      update with R = 1 m^2 leaves sigma_up <= 1 m, and the next 0.1 s prediction integrates
+      the vertical velocity, whose Gauss-Markov sigma is 1 m/s: sigma_up <= 1 m + 1 m/s * 0.1 s
+      (Cauchy-Schwarz on the position-velocity cross term; the driving noise's own share of
+      position variance over 0.1 s is ~1e-4 m^2).
+    * Off: nothing measures height, so its sigma only grows, epoch after epoch.
+    * Either way no vehicle has integrity in an epoch without GNSS (no screen ran).
+    """
+    sc = load_scenario(None, [
+        'network.name="open_highway"', "clusters.0.vehicles=2", "duration_s=12.0",
+        'faults=[{kind="gnss_outage", start_s=4.0, duration_s=4.0}]',
+        'solutions=[{name="aided", sensors=["gnss","uwb"]},'
+        ' {name="free", sensors=["gnss","uwb"], height_aiding=false}]',
+    ])
+    assert sc.solutions[0].height_aiding and not sc.solutions[1].height_aiding
+    res = run_scenario(sc, tmp_path / "r", quiet=True, replay=False)
+    ep = pd.read_parquet(tmp_path / "r" / "epochs.parquet")
+    out = ep[(ep.t_s > 4.05) & (ep.t_s < 7.95)]
+    aided, free = (out[out.solution == s].set_index("t_s") for s in ("aided", "free"))
+    assert len(aided) == len(free) > 30
+    assert (aided.used_pr == 0).all() and not out.integrity_available.any()
+    assert aided.sigma_up_m.max() <= 1.1
+    assert (np.diff(free.sigma_up_m.to_numpy()) > 0).all()
+    meas = res.summary["statistics"]
+    assert meas["aided"]["measurements"]["height_aiding"]["used"] > 0
+    assert "height_aiding" not in meas["free"]["measurements"]
+    # the resolved scenario keeps it off (TOML has no null: the switch is a boolean)
+    again = load_scenario(tmp_path / "r" / "scenario.resolved.toml")
+    assert [s.height_aiding for s in again.solutions] == [True, False]
+
+
+def test_height_aiding_sigma_none_means_off():
+    """From Python, ``height_aiding_sigma_m=None`` (the filter's own "off") is the same as
+    ``height_aiding=False``, and it survives the resolved-TOML round trip."""
+    from v2v.config.sections import SolutionSection
+
+    sol = SolutionSection(name="x", sensors=["gnss"], height_aiding_sigma_m=None)
+    assert sol.height_aiding is False and sol.height_aiding_sigma is None
+    assert SolutionSection(name="x", sensors=["gnss"]).height_aiding_sigma == 1.0

@@ -158,7 +158,7 @@ def build_filter(sol: SolutionSection, lead: str, vehicles: Sequence[str], beari
         ),
         significance=sol.significance,
         use_uwb_bias_scale=sol.uwb_error_states,
-        height_aiding_sigma_m=sol.height_aiding_sigma_m,
+        height_aiding_sigma_m=sol.height_aiding_sigma,
         phase=PhaseConfig(
             phase_sigma_m=sol.phase_sigma_m,
             elevation_mask_rad=float(np.radians(sol.phase_elevation_mask_deg)),
@@ -637,6 +637,7 @@ class SolutionRunner:
         """Process ``output_times``; returns how many leading ``events`` were consumed."""
         sol, ekf, lead, vehicles, rec = self.sol, self.ekf, self.lead, self.vehicles, self.rec
         use, members, last_heard = self.use, self.members, self.last_heard
+        aid_sigma = sol.height_aiding_sigma
         t_filter, pending, last_gnss, t_prev_out = self.t_filter, self.pending, self.last_gnss, self.t_prev_out
         ei = 0
         n_events = len(events)
@@ -647,20 +648,21 @@ class SolutionRunner:
                 if t_out - last_heard.setdefault(v, t_out) > LEAVE_AFTER_S:
                     ekf.remove_vehicle(v)
                     rec.membership.append((t_out, v, "left"))
-            has_gnss = True
-            if sol.height_aiding_sigma_m is not None:  # look ahead only within this output interval
-                has_gnss = False
-                k = ei
-                while k < n_events and events[k].t_s <= t_out + 1e-9:
-                    if events[k].kind == "gnss" and events[k].lead_base_ecef_m is not None:
-                        has_gnss = True
-                        break
-                    k += 1
+            # a usable GNSS epoch in this output interval? (look ahead only within it)
+            has_gnss = False
+            k = ei
+            while k < n_events and events[k].t_s <= t_out + 1e-9:
+                if events[k].kind == "gnss" and events[k].lead_base_ecef_m is not None:
+                    has_gnss = True
+                    break
+                k += 1
+            if not has_gnss:
+                ekf.gnss_unavailable()
             aided = False
             while ei < n_events and events[ei].t_s <= t_out + 1e-9:
                 ev = events[ei]
                 if (ev.kind == "uwb" and "uwb" in use and t_filter is not None
-                        and (has_gnss or aided or sol.height_aiding_sigma_m is None)):
+                        and (has_gnss or aided or aid_sigma is None)):
                     # a run of UWB events (one time tag each at 3 Hz x all pairs): predict + update
                     # of every one in a single compiled call (ClusterEkf.update_uwb_events)
                     ei, t_filter, infos = self._uwb_run(events, ei, t_out, t_filter)
@@ -685,8 +687,8 @@ class SolutionRunner:
                 ekf.predict(max(0.0, ev.t_s - t_filter))
                 t_filter = max(t_filter, ev.t_s)
                 infos = Updates()
-                if not has_gnss and not aided and sol.height_aiding_sigma_m is not None:
-                    infos += ekf.update_height_aiding(sol.height_aiding_sigma_m)
+                if not has_gnss and not aided and aid_sigma is not None:
+                    infos += ekf.update_height_aiding(aid_sigma)
                     aided = True
                 if ev.kind == "gnss":
                     if ev.lead_base_ecef_m is None:
@@ -760,9 +762,11 @@ def run_solution(sol: SolutionSection, ekf: ClusterEkf, events: Sequence[Event],
     """Filter the delivered events with one solution and record an estimate at every output epoch.
 
     Output epochs are the GNSS epoch grid (they continue through GNSS outages). In an
-    output interval with no usable GNSS, a solution with ``height_aiding_sigma_m`` adds the
+    output interval with no usable GNSS, a solution with ``height_aiding`` on adds the
     "relative up = 0" pseudo-measurement once, before its UWB and bearing updates (UWB and
-    bearings carry no vertical information; see ``FilterConfig.height_aiding_sigma_m``).
+    bearings carry no vertical information; see ``FilterConfig.height_aiding_sigma_m``), and
+    every solution's filter is told (:meth:`ClusterFilterBase.gnss_unavailable`: no vehicle has
+    integrity in such an epoch).
     One whole-run :class:`SolutionRunner`; or, given ``runner`` (a streamed run, chunk by
     chunk), that runner continued over ``output_times`` (``sol``, ``ekf``, ``lead``,
     ``vehicles``, ``on_epoch`` are then the runner's own): the returned record is the same

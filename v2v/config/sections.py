@@ -102,7 +102,10 @@ class SolutionSection(_Model):
     clock_drift_tau_s: float = Field(default=10.0, gt=0.0)
     # "relative up = 0 +- sigma" in epochs without GNSS (cars on one locally flat road): UWB and
     # bearings carry no height, and without it their geometry degrades within seconds of an outage.
-    height_aiding_sigma_m: float | None = Field(default=1.0, gt=0.0)
+    # height_aiding = false turns it off (TOML has no null; height_aiding_sigma_m = None given from
+    # Python means the same and is stored as height_aiding = false).
+    height_aiding: bool = True
+    height_aiding_sigma_m: float = Field(default=1.0, gt=0.0)
     # Estimated-azimuth process model (azimuth = "estimated" only): azimuth = integral of a
     # first-order Gauss-Markov yaw rate (sigma, tau) plus a random walk. yaw_rate_sigma_deg_s = 0
     # drops the yaw-rate state (pure random walk). See v2v.estimation.process.
@@ -119,6 +122,19 @@ class SolutionSection(_Model):
     ambiguity_resolution: bool = True
     ar_min_success: float = Field(default=0.999, gt=0.0, lt=1.0)
     ar_ratio: float = Field(default=3.0, ge=1.0)
+
+    @model_validator(mode="before")
+    @classmethod
+    def _no_sigma_means_off(cls, data: object) -> object:
+        if isinstance(data, dict) and "height_aiding_sigma_m" in data and data["height_aiding_sigma_m"] is None:
+            data = {k: v for k, v in data.items() if k != "height_aiding_sigma_m"}
+            data["height_aiding"] = False
+        return data
+
+    @property
+    def height_aiding_sigma(self) -> float | None:
+        """The height-aiding sigma in metres, or None when ``height_aiding`` is off."""
+        return self.height_aiding_sigma_m if self.height_aiding else None
 
     @field_validator("sensors")
     @classmethod

@@ -609,6 +609,19 @@ class ClusterFilterBase(ABC):
             infos += self._update_phase(epochs, lead_ep, geo, code_ok)
         return infos
 
+    def gnss_unavailable(self) -> None:
+        """No usable GNSS epoch in this output interval (an outage of everyone, or the lead
+        without a fix): no vehicle has integrity (no screen ran) until the next
+        :meth:`update_gnss`.
+
+        :attr:`gnss_weak` keeps the last epoch's value on purpose: ranges and bearings stay
+        deferred while P is too wide for their linearization, and the solution dead-reckons.
+        Treating an outage like a weak epoch (no deferral) was measured worse: in a 10 s
+        outage of 3 cars on open_highway, GPS+Bearing's along-track error reached 190 m at
+        sigma 30 m and GPS+UWB's 45 m at sigma 23 m (deferring: 5 m and 0.2 m, sigma ~50 m);
+        GPS+UWB+Bearing, never deferred, was the same either way."""
+        self.integrity_available = dict.fromkeys(self.layout.vehicles, False)
+
     # ----------------------------------------------------------------- carrier phase
     def _update_phase(self, epochs: dict[str, GnssEpoch], lead_ep: GnssEpoch | None,
                       geo: GnssGeometry, code_ok: dict[str, set[int]]) -> list[UpdateInfo]:
