@@ -36,6 +36,12 @@ BAD_SCENARIOS = {
     "bearing_solution_without_sensor": (
         "[sensors.bearing]\nenabled = false\n[[solutions]]\nname = 'b'\nsensors = ['gnss', 'bearing']\n", "bearing"),
     "unknown_uwb_profile": ("[sensors.uwb]\nprofile = 'acme'\n", "uwb.profile"),
+    # GNSS epochs (the output epochs) must fall on SUMO steps, or most epochs have no truth
+    "step_not_dividing_gnss_interval": ("step_length_s = 0.37\n", "step_length_s"),
+    "gnss_rate_off_the_step_grid": ("[sensors.gnss]\nrate_hz = 3.0\n", "step_length_s"),
+    "empty_name": ("name = ''\n", "name"),  # the default run folder would be runs/ itself
+    # a relative net_file is relative to the scenario's folder: this names the scenario file itself
+    "not_a_sumo_net": ("[network]\nname = ''\nnet_file = 'bad.toml'\n", "network.net_file"),
 }
 
 
@@ -50,6 +56,22 @@ def test_bad_scenario_is_one_line_exit_2_and_no_run_folder(tmp_path, case):
     _assert_user_error(p, field)
     assert not out.exists()
     assert not [q for q in tmp_path.iterdir() if q.name.startswith(".run")], "no staging folder left behind"
+
+
+def test_out_that_is_not_a_run_folder_is_refused_and_left_alone(tmp_path, capsys):
+    """--out may be new, empty or a previous run's folder (replaced); anything else is the
+    user's: refused before any work, untouched."""
+    docs = tmp_path / "docs"
+    docs.mkdir()
+    (docs / "thesis.txt").write_text("mine")
+    afile = tmp_path / "afile"
+    afile.write_text("mine")
+    for out in (docs, afile, afile / "run"):
+        assert main(["demo", "--quiet", "--no-replay", "--set", "duration_s=1", "--out", str(out)]) == 2
+        err = [ln for ln in capsys.readouterr().err.splitlines() if ln.strip()]
+        assert len(err) == 1 and err[0].startswith("v2v: error: --out: ") and "fix:" in err[0]
+    assert (docs / "thesis.txt").read_text() == "mine" and afile.read_text() == "mine"
+    assert sorted(q.name for q in tmp_path.iterdir()) == ["afile", "docs"]  # no staging or .old folder
 
 
 def test_bad_set_override_and_missing_file(tmp_path):
@@ -114,17 +136,61 @@ def test_replay_command_points_at_the_recording(tmp_path):
     assert "--serve-web" in cmd and cmd[cmd.index("--bind") + 1] == "127.0.0.1" and "9123" in cmd
 
 
-def test_readme_scenario_example_is_a_valid_scenario(tmp_path):
-    """The field-by-field example in the README is a scenario v2v accepts (docs stay true)."""
+def _readme_scenario_block() -> str:
     import re
-
-    from v2v.config.scenario import load_scenario
 
     readme = (Path(__file__).resolve().parents[1] / "README.md").read_text()
     section = readme.split("## A scenario, field by field", 1)[1]
-    block = re.search(r"```toml\n(.*?)```", section, re.S).group(1)
+    return re.search(r"```toml\n(.*?)```", section, re.S).group(1)
+
+
+def _field_paths(model: type, prefix: str = "") -> set[str]:
+    """Dotted paths of every field of a pydantic model, nested sections expanded."""
+    from pydantic import BaseModel
+
+    out = set()
+    for name, f in model.model_fields.items():
+        ann = f.annotation
+        if isinstance(ann, type) and issubclass(ann, BaseModel):
+            out |= _field_paths(ann, f"{prefix}{name}.")
+        else:
+            out.add(prefix + name)
+    return out
+
+
+def _toml_paths(d: dict, prefix: str = "") -> set[str]:
+    out = set()
+    for k, v in d.items():
+        if isinstance(v, dict) and v:
+            out |= _toml_paths(v, f"{prefix}{k}.")
+        else:
+            out.add(prefix + k)
+    return out
+
+
+def test_readme_scenario_reference_shows_every_field_at_its_default(tmp_path):
+    """The README's field-by-field block is the scenario reference: it loads, every value in it is
+    the built-in default (its one solution: the SolutionSection defaults), and it names every field
+    of the schema (``exchange.filter_lag_s``, default "unset", appears as a comment; ``faults`` has
+    its own README section)."""
+    import tomllib
+
+    from v2v.config.scenario import ClusterConfig, Scenario, VehicleTypeConfig, load_scenario
+    from v2v.config.sections import SolutionSection
+
+    block = _readme_scenario_block()
     f = tmp_path / "readme.toml"
     f.write_text(block)
-    sc = load_scenario(f)
-    assert sc.network.name == "urban_canyon" and sc.clusters[0].vehicles == 3
-    assert [s.name for s in sc.solutions] == ["GPS+UWB+Bearing"]
+    sc, default = load_scenario(f), load_scenario(None)
+    assert sc.model_dump(exclude={"solutions"}) == default.model_dump(exclude={"solutions"})
+    [sol] = sc.solutions
+    assert sol == SolutionSection(name=sol.name, sensors=sol.sensors)
+
+    data = tomllib.loads(block)
+    shown = _toml_paths({k: v for k, v in data.items() if k not in ("clusters", "solutions", "vehicle_types")})
+    scalar_top = _field_paths(Scenario) - {"clusters", "solutions", "vehicle_types", "faults"}
+    assert scalar_top - shown == {"exchange.filter_lag_s"} and "# filter_lag_s" in block
+    assert set(data["clusters"][0]) == set(ClusterConfig.model_fields)
+    assert set(data["solutions"][0]) == set(SolutionSection.model_fields)
+    for vt in ("passenger", "truck"):
+        assert set(data["vehicle_types"][vt]) == set(VehicleTypeConfig.model_fields)

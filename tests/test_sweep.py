@@ -29,8 +29,6 @@ from v2v.errors import UserError
 from v2v.sweep import (
     META_COLUMNS,
     RunTask,
-    add_sweep_parser,
-    cmd_sweep,
     execute_run,
     flatten_summary,
     load_study,
@@ -53,20 +51,13 @@ solutions = [{name = "GPS", sensors = ["gnss"]}]
 
 
 def _cli(argv: list[str]) -> int:
-    """`v2v sweep ...` through the real CLI once it is wired, else through the same parser."""
+    """`v2v sweep ...` through the real CLI (whose parser must have the sweep command)."""
     from v2v import cli
 
     parser = cli.build_parser()
     sub = next(a for a in parser._actions if isinstance(a, argparse._SubParsersAction))
-    if "sweep" in sub.choices:
-        return cli.main(argv)
-    add_sweep_parser(sub)
-    args = parser.parse_args(argv)
-    try:
-        return cmd_sweep(args)
-    except UserError as exc:
-        print(f"v2v: error: {exc.one_line()}", file=sys.stderr)
-        return 2
+    assert "sweep" in sub.choices
+    return cli.main(argv)
 
 
 def _metric_columns(df: pd.DataFrame) -> list[str]:
@@ -343,3 +334,67 @@ def test_second_sweep_on_a_busy_folder_stops_with_one_line(tiny_study, tmp_path,
     err = capsys.readouterr().err.strip().splitlines()
     assert len(err) == 1 and "--out" in err[0] and "another sweep" in err[0] and f"pid {__import__('os').getpid()}" in err[0]
     assert sorted(p.name for p in out.iterdir()) == [".sweep.lock"]
+
+
+# --------------------------------------------------------------------------- bad input, one line each
+
+
+def _one_error_line(capsys, field: str) -> str:
+    err = [ln for ln in capsys.readouterr().err.splitlines() if ln.strip()]
+    assert len(err) == 1 and err[0].startswith("v2v: error: ") and field in err[0] and "fix:" in err[0], err
+    return err[0]
+
+
+def test_huge_seed_count_is_refused_before_the_list_is_built(tmp_path, capsys):
+    study = _write(tmp_path / "huge.toml", "seeds = {start = 1, count = 3000000000}\n")
+    assert _cli(["sweep", str(study), "--out", str(tmp_path / "o"), "--quiet"]) == 2
+    assert "2147483647" in _one_error_line(capsys, "seeds")
+    assert not (tmp_path / "o").exists()
+
+
+def test_scheduler_port_that_is_not_dask_fails_in_one_line_and_writes_nothing(tiny_study, tmp_path, capsys,
+                                                                              monkeypatch):
+    """An HTTP server accepts the TCP connection (the reachability probe passes) but never does
+    the Dask handshake: the bounded connection gives up (here after 2 s instead of 30 s) before
+    anything is written, so no sweep.json / runs.parquet can pass for a sweep."""
+    import http.server
+    import threading
+
+    import v2v.sweep as sweep
+
+    srv = http.server.ThreadingHTTPServer(("127.0.0.1", 0), http.server.BaseHTTPRequestHandler)
+    threading.Thread(target=srv.serve_forever, daemon=True).start()
+    monkeypatch.setattr(sweep, "SCHEDULER_CONNECT_S", 2.0)
+    out = tmp_path / "o"
+    try:
+        code = _cli(["sweep", str(tiny_study), "--out", str(out), "--quiet",
+                     "--scheduler", f"tcp://127.0.0.1:{srv.server_address[1]}"])
+    finally:
+        srv.shutdown()
+    assert code == 2
+    assert "not a usable Dask scheduler" in _one_error_line(capsys, "--scheduler")
+    assert not (out / "sweep.json").exists() and not (out / "runs.parquet").exists()
+
+
+def test_report_refuses_corrupt_empty_or_unwritable(tmp_path, capsys):
+    d = tmp_path / "sw"
+    d.mkdir()
+    (d / "runs.parquet").write_bytes(b"not parquet")
+    assert _cli(["sweep", "report", str(d)]) == 2
+    assert "not readable Parquet" in _one_error_line(capsys, "DIR")
+    pd.DataFrame({"run_id": ["a"], "status": ["failed"], "error": ["x"]}).to_parquet(d / "runs.parquet")
+    assert _cli(["sweep", "report", str(d)]) == 2
+    assert "none finished" in _one_error_line(capsys, "DIR")
+    assert not (d / "report.md").exists()
+
+
+@pytest.mark.sumo
+def test_sweep_whose_runs_fail_exits_1_naming_the_first_error(tmp_path, capsys):
+    """Failed runs do not stop the study, but the command's status says so (1, with the first
+    one-line error), so a script or CI running a sweep does not take it for a success."""
+    study = _write(tmp_path / "bad.toml", 'seeds = [1]\n[set]\nduration_s = 2.0\nsolutions = []\n'
+                   "[grid]\n\"network.route_edges\" = [['ap_in', 'SW-SE']]\n")
+    assert _cli(["sweep", str(study), "--out", str(tmp_path / "o"), "--quiet", "--workers", "1"]) == 1
+    line = _one_error_line(capsys, "network.route_edges")
+    assert "1 of 1 runs failed" in line
+    assert pd.read_parquet(tmp_path / "o" / "runs.parquet")["status"].tolist() == ["failed"]

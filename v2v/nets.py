@@ -539,6 +539,25 @@ def _spec_get(spec: Any, key: str) -> Any:
     return getattr(spec, key, None)
 
 
+def _check_sumo_net(path: Path) -> None:
+    """A one-line UserError unless ``path`` (``.gz`` or plain) is XML whose root is a SUMO ``<net>``."""
+    import gzip
+    import re
+
+    try:
+        opener = gzip.open if path.name.endswith(".gz") else open
+        with opener(path, "rb") as f:
+            head = f.read(65536)
+    except (OSError, EOFError) as exc:
+        raise UserError(f"cannot read net file {path} ({exc})", field="network.net_file",
+                        fix="give a readable SUMO .net.xml[.gz]") from None
+    # the first element after the XML declaration, comments and processing instructions
+    body = re.sub(rb"<\?.*?\?>|<!--.*?-->", b"", head, flags=re.S).lstrip()
+    if not re.match(rb"<net[\s>/]", body):
+        raise UserError(f"{path} is not a SUMO net (its root element is not <net>)", field="network.net_file",
+                        fix="give a net built by netconvert (.net.xml[.gz])")
+
+
 def resolve_net(spec: Any) -> BuiltNet:
     """Turn a scenario's network spec into a :class:`BuiltNet`.
 
@@ -590,6 +609,7 @@ def resolve_net(spec: Any) -> BuiltNet:
             field="network.net_file",
             fix=f"give an existing .net.xml[.gz], or use network.name = one of {shipped}",
         )
+    _check_sumo_net(net_path)
     stem = net_path.name.removesuffix(".gz").removesuffix(".net.xml")
     if poly_file:
         poly_path: Path | None = _existing(poly_file, "network.poly_file")

@@ -177,6 +177,25 @@ def _gc_for_a_run() -> Iterator[None]:
         gc.unfreeze()
 
 
+def absolute_paths(scenario: Scenario, base_dir: Path | None) -> Scenario:
+    """The scenario with its relative file paths made absolute against ``base_dir`` (else the
+    working directory); the built-in names ("nominal" ephemeris, empty net_file) are kept."""
+    base = Path(base_dir) if base_dir is not None else Path.cwd()
+
+    def absolute(p: str) -> str:
+        return p if not p or Path(p).is_absolute() else str((base / p).resolve())
+
+    net = scenario.network
+    new_net = net.model_copy(update={"net_file": absolute(net.net_file),
+                                     "polygon_files": [absolute(p) for p in net.polygon_files]})
+    gnss = scenario.sensors.gnss
+    new_gnss = gnss if gnss.ephemeris == "nominal" else gnss.model_copy(update={"ephemeris": absolute(gnss.ephemeris)})
+    if new_net == net and new_gnss is gnss:
+        return scenario
+    sensors = scenario.sensors.model_copy(update={"gnss": new_gnss})
+    return scenario.model_copy(update={"network": new_net, "sensors": sensors})
+
+
 def run_scenario(
     scenario: Scenario,
     out_dir: Path,
@@ -199,8 +218,14 @@ def run_scenario(
     whole sensor stream at once, or with ``save_measurements``, are one chunk (see
     :func:`_fault_needs_whole_run`).
 
+    Relative file paths of the scenario (``network.net_file``, ``network.polygon_files``,
+    ``sensors.gnss.ephemeris``) are relative to ``base_dir`` (the scenario file's folder; the
+    working directory without one); the run uses, and saves in ``scenario.resolved.toml``,
+    their absolute form, so the resolved scenario reruns from anywhere.
+
     Stage wall times (summed over chunks) are reported in ``summary.json`` under ``timing_s``.
     """
+    scenario = absolute_paths(scenario, base_dir)
     with _gc_for_a_run():
         return _run_scenario(scenario, out_dir, quiet=quiet, replay=replay, save_measurements=save_measurements,
                              base_dir=base_dir, chunk_s=chunk_s)

@@ -181,6 +181,9 @@ def _read_seeds(raw: Any, where: str) -> tuple[int, ...]:
         if not (isinstance(start, int) and isinstance(count, int)) or count < 1:
             raise UserError("seeds.start and seeds.count must be integers, count >= 1", field="seeds",
                             fix="write seeds = {start = 1, count = 100}")
+        if not 0 <= start <= start + count - 1 <= MAX_SEED:  # (checked before the list is built)
+            raise UserError(f"seeds {start}..{start + count - 1} leave [0, {MAX_SEED}]", field="seeds",
+                            fix="use a non-negative start and a smaller count")
         seeds = list(range(start, start + count))
     else:
         raise UserError(f"seeds must be a list or a table in {where}", field="seeds",
@@ -479,6 +482,33 @@ def _check_scheduler_reachable(address: str, timeout_s: float = 5.0) -> None:
                         fix="start one (`dask scheduler`) or check the host and port") from None
 
 
+SCHEDULER_CONNECT_S = 30.0  # the whole connection (TCP + the Dask handshake) to a --scheduler
+
+
+def _connect(client_cls: Any, scheduler: str, timeout_s: float | None = None):
+    """A client of a running scheduler, or a one-line UserError. Dask's own timeout does not
+    bound the handshake (a port that accepts TCP but speaks something else can hang it, or
+    make it read a garbage frame length): the connection runs in a daemon thread that is
+    given ``timeout_s`` in all, and any failure is reported as the address's fault."""
+    timeout_s = SCHEDULER_CONNECT_S if timeout_s is None else timeout_s
+    box: dict[str, Any] = {}
+
+    def connect() -> None:
+        try:
+            box["client"] = client_cls(scheduler, timeout=f"{timeout_s}s", set_as_default=False)
+        except BaseException as exc:  # noqa: BLE001 - reported below, in one line
+            box["error"] = exc
+
+    t = threading.Thread(target=connect, name="v2v-scheduler-connect", daemon=True)
+    t.start()
+    t.join(timeout_s + 5.0)
+    if "client" in box:
+        return box["client"]
+    why = f"no Dask handshake within {timeout_s:.0f} s" if t.is_alive() else one_line_error(box["error"])
+    raise UserError(f"{scheduler} answered but is not a usable Dask scheduler ({why})", field="--scheduler",
+                    fix="give the scheduler's own address, as printed by `dask scheduler` (default port 8786)")
+
+
 def _open_client(scheduler: str | None, workers: int | None, host: str, n_pending: int):
     """(client, cluster or None). The local cluster: one single-threaded worker process per core."""
     import logging
@@ -488,12 +518,7 @@ def _open_client(scheduler: str | None, workers: int | None, host: str, n_pendin
     from dask.distributed import Client, LocalCluster
 
     if scheduler:
-        try:
-            client = Client(scheduler, timeout="15s", set_as_default=False)
-        except (OSError, ValueError) as exc:
-            raise UserError(f"cannot connect to the scheduler {scheduler!r}: {one_line_error(exc)}",
-                            field="--scheduler", fix="start one (dask scheduler) or give its tcp://HOST:PORT") from None
-        return client, None
+        return _connect(Client, scheduler), None
     cores = len(os.sched_getaffinity(0)) if hasattr(os, "sched_getaffinity") else (os.cpu_count() or 1)
     n = max(1, min(workers or cores, n_pending))
     # Worker processes inherit an ignored SIGINT: Ctrl-C in the terminal reaches only this process,
@@ -540,7 +565,11 @@ def run_study(
     runs_dir = out / "runs"
     if scheduler and _scan(study, runs_dir)[1]:
         _check_scheduler_reachable(scheduler)  # before anything is written
-    out.mkdir(parents=True, exist_ok=True)
+    try:
+        out.mkdir(parents=True, exist_ok=True)
+    except OSError as exc:
+        raise UserError(f"cannot create the folder {out} ({exc.strerror or exc})", field="--out",
+                        fix="give a folder (not a file) that can be written") from None
     with _FolderLock(out):
         return _run_study_locked(study, out, scheduler, workers, host, quiet, flush_every_s, wall0)
 
@@ -571,13 +600,22 @@ def _run_study_locked(study: Study, out: Path, scheduler: str | None, workers: i
     if not quiet:
         print(f"sweep: {len(study.runs)} runs ({skipped} already complete, {len(pending)} to run) -> {out}",
               file=sys.stderr, flush=True)
-    runs_dir.mkdir(parents=True, exist_ok=True)
-    _remove_staging(runs_dir)  # left by a run killed mid-write
-    _write_sweep_json(out, study)
-    _write_runs(out, study, rows)
+    # connect first: a scheduler that fails the handshake leaves no sweep.json / runs.parquet behind
+    client, cluster = _open_client(scheduler, workers, host, len(pending)) if pending else (None, None)
+    try:
+        runs_dir.mkdir(parents=True, exist_ok=True)
+        _remove_staging(runs_dir)  # left by a run killed mid-write
+        _write_sweep_json(out, study)
+        _write_runs(out, study, rows)
+    except BaseException:
+        if client is not None:
+            client.close()
+        if cluster is not None:
+            cluster.close()
+        raise
     if pending:
+        assert client is not None
         by_id = {s.run_id: s for s in pending}
-        client, cluster = _open_client(scheduler, workers, host, len(pending))
         futures = []
         try:
             for spec in pending:
@@ -716,9 +754,21 @@ def write_report(sweep_dir: str | Path, out_dir: str | Path | None = None) -> Re
     runs_file = src / RUNS_FILE
     if not runs_file.is_file():
         raise UserError(f"no {RUNS_FILE} in {src}", field="DIR", fix="give the --out folder of a `v2v sweep` run")
-    df = pd.read_parquet(runs_file)
+    try:
+        df = pd.read_parquet(runs_file)
+    except (OSError, ValueError) as exc:  # (pyarrow's ArrowInvalid is a ValueError)
+        raise UserError(f"{runs_file} is not readable Parquet ({one_line_error(exc)})", field="DIR",
+                        fix="rerun the sweep into DIR (finished runs are kept and re-listed)") from None
+    if df.empty or "status" not in df or not (df["status"] == "ok").any():
+        n = len(df)
+        raise UserError(f"{runs_file} lists {n} run(s), none finished", field="DIR",
+                        fix="run the study (again) first; failed runs have their one-line error in the `error` column")
     out = Path(out_dir) if out_dir is not None else src
-    out.mkdir(parents=True, exist_ok=True)
+    try:
+        out.mkdir(parents=True, exist_ok=True)
+    except OSError as exc:
+        raise UserError(f"cannot create the folder {out} ({exc.strerror or exc})", field="--out",
+                        fix="give a folder (not a file) that can be written") from None
     grid_cols = _grid_columns(src, df)
     df, solutions = _with_vehicle_means(df)
     agg = aggregate_runs(df, grid_cols)
@@ -886,6 +936,9 @@ def cmd_sweep(args) -> int:
     if not args.quiet:
         print(f"{res.total} runs: {res.executed} executed ({res.failed} failed), {res.skipped} already complete; "
               f"wall {res.wall_s:.1f} s; table {res.out_dir / RUNS_FILE}")
-        if res.failed:
-            print(f"{res.failed} runs failed: their one-line errors are in the `error` column", file=sys.stderr)
+    if res.failed:
+        first = res.table.loc[res.table["status"] != "ok", "error"].iloc[0] if res.table is not None else ""
+        print(f"v2v: error: {res.failed} of {res.executed} runs failed (first: {first}) -- fix: see the `error` "
+              f"column of {res.out_dir / RUNS_FILE}; rerunning the study retries only those", file=sys.stderr)
+        return 1
     return 0

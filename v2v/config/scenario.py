@@ -114,13 +114,40 @@ class Scenario(_Model):
     def _utc(cls, v: datetime) -> datetime:
         if v.tzinfo is None:
             v = v.replace(tzinfo=UTC)
-        return v.astimezone(UTC)
+        v = v.astimezone(UTC)
+        if v < datetime(1980, 1, 6, tzinfo=UTC):
+            raise ValueError("is before the GPS epoch 1980-01-06T00:00:00Z -- fix: give a later UTC time")
+        return v
+
+    @field_validator("name")
+    @classmethod
+    def _name_is_a_folder_name(cls, v: str) -> str:
+        # the default run folder is runs/<name>: "", ".", ".." or a path would put it elsewhere
+        if not v.strip() or v in (".", "..") or "/" in v or "\\" in v:
+            raise ValueError("must be a non-empty name without '/' (it names the run folder runs/<name>)"
+                             ' -- fix: e.g. name = "urban_canyon"')
+        return v
+
+    @model_validator(mode="after")
+    def _steps_fit(self) -> Scenario:
+        # output epochs are the GNSS epochs, and each needs a SUMO step at its time (the truth)
+        dt = self.step_length_s
+        if self.duration_s < dt:
+            raise ValueError(f"@duration_s: {self.duration_s} s is shorter than one step_length_s ({dt} s)"
+                             f" -- fix: give at least {dt} s")
+        gi = 1.0 / self.sensors.gnss.rate_hz
+        if abs(gi / dt - round(gi / dt)) > 1e-6:
+            raise ValueError(f"@step_length_s: {dt} s does not divide the GNSS interval {gi:g} s (1 / sensors.gnss.rate_hz;"
+                             f" GNSS epochs, the output epochs, must fall on SUMO steps) -- fix: use a step that divides"
+                             f" it (e.g. 0.1 or 0.05 s at 10 Hz) or a GNSS rate of 1 / (a multiple of {dt} s)")
+        return self
 
     @model_validator(mode="after")
     def _check_refs(self) -> Scenario:
         names = [c.name for c in self.clusters]
         if len(set(names)) != len(names):
-            raise ValueError("cluster names must be unique")
+            dup = sorted({n for n in names if names.count(n) > 1})
+            raise ValueError(f"@clusters: cluster name(s) {dup} appear more than once -- fix: give each cluster its own name")
         for c in self.clusters:
             for i in range(c.vehicles):
                 t = c.type_of(i)
@@ -131,7 +158,8 @@ class Scenario(_Model):
                     )
         sol_names = [s.name for s in self.solutions]
         if len(set(sol_names)) != len(sol_names):
-            raise ValueError("solution names must be unique")
+            dup = sorted({n for n in sol_names if sol_names.count(n) > 1})
+            raise ValueError(f"@solutions: solution name(s) {dup} appear more than once -- fix: give each solution its own name")
         for s in self.solutions:
             for sensor in s.sensors:
                 if not getattr(self.sensors, sensor).enabled:
@@ -240,9 +268,21 @@ def _format_validation_error(err: ValidationError, data: dict[str, Any], source:
     if e["type"] == "missing":
         return UserError(f"required key missing in {source}", field=loc, fix="add it (see the README scenario reference)")
     msg = e["msg"].removeprefix("Value error, ")
+    # a validator may name the field and the fix itself: "@field: message -- fix: what to do"
+    fix = "correct the value"
+    if " -- fix: " in msg:
+        msg, fix = msg.split(" -- fix: ", 1)
+    if msg.startswith("@") and ": " in msg:
+        own, msg = msg[1:].split(": ", 1)
+        loc = f"{loc}.{own}" if loc else own
     got = e.get("input")
-    got_s = f" (got {got!r})" if not isinstance(got, dict | list) and got is not None else ""
-    return UserError(f"{msg}{got_s} in {source}", field=loc or "scenario", fix="correct the value")
+    got_s = f" (got {got!r})" if not isinstance(got, dict | list) and got is not None and _quotes_not(msg, got) else ""
+    return UserError(f"{msg}{got_s} in {source}", field=loc or "scenario", fix=fix)
+
+
+def _quotes_not(msg: str, got: Any) -> bool:
+    """Show the offending value unless the message already quotes it."""
+    return repr(got) not in msg
 
 
 def _allowed_keys_at(loc: tuple[Any, ...]) -> list[str]:
@@ -271,6 +311,8 @@ def _allowed_keys_at(loc: tuple[Any, ...]) -> list[str]:
 def read_toml(path: Path, *, field: str, what: str) -> dict[str, Any]:
     """Read a TOML file (data only); a missing file or bad syntax is a one-line UserError."""
     p = Path(path)
+    if p.is_dir():
+        raise UserError(f"{what} {str(p)!r} is a folder", field=field, fix="give the path to a .toml file")
     if not p.is_file():
         raise UserError(f"{what} {str(p)!r} does not exist", field=field, fix="give the path to a .toml file")
     try:
@@ -278,6 +320,10 @@ def read_toml(path: Path, *, field: str, what: str) -> dict[str, Any]:
             return tomllib.load(f)
     except tomllib.TOMLDecodeError as exc:
         raise UserError(f"{p}: not valid TOML ({exc})", field=field, fix="fix the TOML syntax") from None
+    except UnicodeDecodeError:
+        raise UserError(f"{p}: not UTF-8 text", field=field, fix="save it as UTF-8 TOML") from None
+    except OSError as exc:
+        raise UserError(f"cannot read {p} ({exc.strerror or exc})", field=field, fix="give a readable file") from None
 
 
 def load_default_dict() -> dict[str, Any]:

@@ -50,21 +50,55 @@ def atomic_write_parquet(path: Path, table: Any) -> None:
     atomic_write(path, lambda p: pq.write_table(table, p, compression="zstd"))
 
 
+RUN_FOLDER_MARKERS = ("summary.json", "scenario.resolved.toml")
+
+
+def check_run_target(final: Path, *, what: str = "--out") -> None:
+    """A run may go to ``final`` only if it does not exist, is an empty folder, or is a
+    previous run's folder (it holds ``summary.json`` or ``scenario.resolved.toml``), which the
+    new run replaces; anything else (a file, a folder of other things) is the user's and is
+    refused before any work is done."""
+    from v2v.errors import UserError
+
+    final = Path(final)
+    if not final.exists() and not final.is_symlink():
+        return
+    if not final.is_dir():
+        raise UserError(f"{final} exists and is not a folder", field=what, fix="give a new folder or a previous run's folder")
+    try:
+        entries = list(final.iterdir())
+    except OSError as exc:
+        raise UserError(f"cannot read {final} ({exc.strerror or exc})", field=what, fix="give a readable folder") from None
+    if entries and not any((final / m).is_file() for m in RUN_FOLDER_MARKERS):
+        raise UserError(f"{final} exists and is not a v2v run folder (it would be replaced)", field=what,
+                        fix="give a new folder, an empty one, or a previous run's folder")
+
+
 class RunFolder:
     """A run's output folder, built under a hidden temporary name and renamed when complete.
 
     ``with RunFolder(out) as tmp:`` gives a staging directory; on success it becomes ``out``
-    (an existing ``out`` is replaced); on any error the staging directory is removed, so
-    no folder that looks complete is left behind.
+    (an existing run folder ``out`` is replaced; anything else there is refused up front,
+    :func:`check_run_target`); on any error the staging directory is removed, so no folder
+    that looks complete is left behind. A folder that cannot be created is a
+    :class:`~v2v.errors.UserError` naming ``what`` (the option that gave the path).
     """
 
-    def __init__(self, final: Path):
+    def __init__(self, final: Path, *, what: str = "--out"):
         self.final = Path(final).resolve()
+        self.what = what
         self.staging: Path | None = None
 
     def __enter__(self) -> Path:
-        self.final.parent.mkdir(parents=True, exist_ok=True)
-        self.staging = Path(tempfile.mkdtemp(prefix=f".{self.final.name}.", suffix=".partial", dir=self.final.parent))
+        from v2v.errors import UserError
+
+        check_run_target(self.final, what=self.what)
+        try:
+            self.final.parent.mkdir(parents=True, exist_ok=True)
+            self.staging = Path(tempfile.mkdtemp(prefix=f".{self.final.name}.", suffix=".partial", dir=self.final.parent))
+        except OSError as exc:
+            raise UserError(f"cannot create {self.final} ({exc.strerror or exc})", field=self.what,
+                            fix="give a writable folder whose parents are folders") from None
         return self.staging
 
     def __exit__(self, exc_type, exc, tb) -> None:

@@ -320,14 +320,14 @@ IDEAL = UwbRadioProfile(
 PROFILES: dict[str, UwbRadioProfile] = {p.name: p for p in (MSSI, TDC, IDEAL)}
 
 
-def profile_by_name(name: str) -> UwbRadioProfile:
-    """The built-in profile ``"mssi"``, ``"tdc"`` or ``"ideal"``; UserError otherwise."""
+def profile_by_name(name: str, field: str = "sensors.uwb.profile") -> UwbRadioProfile:
+    """The built-in profile ``"mssi"``, ``"tdc"`` or ``"ideal"``; UserError (naming ``field``) otherwise."""
     try:
         return PROFILES[str(name).lower()]
     except KeyError:
         raise UserError(
             f"unknown UWB radio profile {name!r}",
-            field="sensors.uwb.profile",
+            field=field,
             fix=f"use one of {', '.join(sorted(PROFILES))}",
         ) from None
 
@@ -553,7 +553,8 @@ class UwbNetwork:
         self.units: dict[str, UwbUnit] = {}
         for vid in ids:
             p = vp.get(vid, default)
-            p = profile_by_name(p) if isinstance(p, str) else p
+            p = profile_by_name(p, f'sensors.uwb.vehicle_profiles."{vid}"' if vid in vp else "sensors.uwb.profile") \
+                if isinstance(p, str) else p
             osc = float(rng.uniform(-p.oscillator_ppm_max, p.oscillator_ppm_max))
             walk = float(rng.uniform(p.walk_ppm_min, p.walk_ppm_max))
             self.units[vid] = UwbUnit(vehicle_id=vid, profile=p, oscillator_ppm=osc, walk_ppm=walk)

@@ -37,7 +37,7 @@ from v2v.sensors.gnss.time import gps_calendar_to_gps_s, gps_s_to_utc
 
 FIT_HALF_INTERVAL_S = 7200.0  # +-2 h around TOE
 _FIX = "give a RINEX 2.x or 3.x GPS navigation file (e.g. brdcDDD0.YYn or *_GN.rnx)"
-_FIELD = "gnss.nav_file"
+_FIELD = "sensors.gnss.ephemeris (or --rinex)"
 # Lines per record for each RINEX 3 system (epoch line + broadcast-orbit lines).
 _LINES_PER_RECORD = {"G": 8, "E": 8, "C": 8, "J": 8, "I": 8, "R": 4, "S": 4}
 
