@@ -19,6 +19,6 @@ SHARED_DATA = REPO.parent / "shared" / "data"
 @pytest.fixture(scope="session")
 def shared_gnss_day() -> Path:
     d = SHARED_DATA / "gnss_2021-04-28"
-    if not (d / "brdc1180.21n").is_file():
+    if not all((d / f).is_file() for f in ("brdc1180.21n", "COD0MGXFIN_20211180000_01D_05M_ORB.SP3")):
         pytest.skip("../shared/data/gnss_2021-04-28 not present (only in the project's workspace)")
     return d

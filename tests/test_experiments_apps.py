@@ -28,6 +28,7 @@ def _load(name: str):
     return mod
 
 
+@pytest.mark.sumo
 def test_lane_level_quick(tmp_path: Path):
     assert _load("lane_level").main(["--quick", "--variants", "open", "--out", str(tmp_path)]) == 0
     t = pd.read_csv(tmp_path / "lane_level.csv")
@@ -61,6 +62,7 @@ def test_lane_level_quick(tmp_path: Path):
     assert (t["lane_model_ok"] > 0.8).all()
 
 
+@pytest.mark.sumo
 def test_fcw_study_quick(tmp_path: Path):
     assert _load("fcw_study").main(["--quick", "--variants", "open", "--out", str(tmp_path)]) == 0
     sol = pd.read_csv(tmp_path / "fcw_solutions.csv")

@@ -34,6 +34,7 @@ def _load():
     return mod
 
 
+@pytest.mark.sumo
 def test_fault_campaign_quick(tmp_path):
     mod = _load()
     assert mod.main(["--quick", "--out", str(tmp_path)]) == 0
@@ -61,6 +62,7 @@ def test_fault_campaign_quick(tmp_path):
 
 
 @pytest.mark.slow
+@pytest.mark.sumo
 def test_fault_campaign_full(tmp_path):
     """Every fault kind, 3000 blunder trials per size, clean runs with multipath on and off:
     every row passes its figure (measured: 41 rows, all PASS; ~9 min wall on a shared 2-core box)."""

@@ -169,5 +169,11 @@ def test_epoch_fast_construction_equals_dataclass():
     assert isinstance(e, GnssEpoch)
     again = GnssEpoch(**{f.name: getattr(e, f.name) for f in fields(GnssEpoch)})
     assert again.n == e.n > 4
+    # every per-satellite column has one row per satellite (the constructor would not check)
+    for f in fields(GnssEpoch):
+        v = getattr(e, f.name)
+        if isinstance(v, np.ndarray):
+            assert v.shape[0] == e.n, f.name
+    assert e.sv_pos_ecef_m.shape == (e.n, 3) and e.prn.dtype.kind == "i" and e.los.dtype == bool
     with pytest.raises(AttributeError):
         e.t_s = 1.0  # still frozen

@@ -89,3 +89,33 @@ def test_compiled_epoch_errors_equal_the_numpy_definitions():
                                   lead_frame_errors(est, true, az), lead_frame_sigmas(cov, az),
                                   [cov[0, 0], cov[0, 1], cov[1, 1], nees(est - true, cov) if ready[k] else np.nan]])
             np.testing.assert_allclose(out[k], ref, rtol=1e-12, atol=1e-12 * 100.0, equal_nan=True)
+
+
+def test_update_kind_statistics_by_hand():
+    """Six updates worked by hand. The 95 % chi-square(1) band is [0.000982, 5.0239]
+    (0.025 / 0.975 quantiles: 0.0313^2 / 2.2414^2 of a standard normal's |z|).
+
+    ====  ========  ======  =====  =================
+    #     accepted  faulty  NIS    counts as
+    ====  ========  ======  =====  =================
+    0     yes       no      0.5    clean, in band
+    1     yes       no      6.0    clean, out of band
+    2     no        no      12.0   false rejection (clean)
+    3     no        yes     40.0   true rejection
+    4     yes       yes     3.0    missed fault
+    5     yes       no      0.0001 clean, below band
+    ====  ========  ======  =====  =================
+    """
+    from v2v.metrics.summary import update_kind_statistics
+
+    acc = np.array([True, True, False, False, True, True])
+    faulty = np.array([False, False, False, True, True, False])
+    nis = np.array([0.5, 6.0, 12.0, 40.0, 3.0, 0.0001])
+    got = update_kind_statistics(acc, faulty, nis)
+    assert {k: got[k] for k in ("used", "rejected", "true_rejections", "false_rejections", "missed_faults", "faulty")} \
+        == {"used": 4, "rejected": 2, "true_rejections": 1, "false_rejections": 1, "missed_faults": 1, "faulty": 2}
+    # clean updates: #0, 1, 2, 5 -> mean (0.5 + 6 + 12 + 0.0001) / 4; in band: only #0
+    assert got["nis_mean_clean"] == pytest.approx((0.5 + 6.0 + 12.0 + 0.0001) / 4, rel=1e-15)
+    assert got["nis_frac_in_band_clean"] == 0.25
+    none_clean = update_kind_statistics(np.array([False]), np.array([True]), np.array([9.0]))
+    assert np.isnan(none_clean["nis_mean_clean"]) and np.isnan(none_clean["nis_frac_in_band_clean"])

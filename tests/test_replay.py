@@ -359,15 +359,28 @@ def test_blueprint_is_stored_with_the_views(run):
 
 
 def test_null_logger_accepts_every_call():
+    """``--no-replay`` runs through NullLogger: it must override every public method of the
+    ReplayLogger interface with the same parameters (a method it inherited would do the base
+    class's work), and each returns None."""
+    import inspect
+
+    from v2v.viz.logger import ReplayLogger
+
+    # (abort is the base class's no-op hook: nothing to discard)
+    public = [n for n, f in inspect.getmembers(ReplayLogger, inspect.isfunction) if not n.startswith("_") and n != "abort"]
+    assert {"log_world", "log_truth_many", "log_errors", "close"} <= set(public)
+    for name in public:
+        assert name in NullLogger.__dict__, f"NullLogger inherits {name}"
+        assert list(inspect.signature(getattr(NullLogger, name)).parameters) == \
+            list(inspect.signature(getattr(ReplayLogger, name)).parameters), name
     with NullLogger() as lg:
         lg.log_world({"a": np.zeros((2, 2))}, {"a": 3.2}, [], [], GEO)
         lg.log_truth(0.0, TrafficStep(t_s=0.0, vehicles={}))
         lg.log_estimates(0.0, "s", ["a"], np.zeros((1, 2)), np.eye(2)[None])
         lg.log_links(0.0, "uwb", np.zeros((1, 3)), np.ones((1, 3)), ["los"])
         lg.log_satellites(0.0, "a", [1], [0.0], [1.0], [True])
-        lg.log_errors(0.0, "s", "a", 0.1, 0.2, 0.3, 0.4, 1.0, 1.0, 8, 0)
-    lg.close()
-    lg.abort()
+        assert lg.log_errors(0.0, "s", "a", 0.1, 0.2, 0.3, 0.4, 1.0, 1.0, 8, 0) is None
+    assert lg.close() is None and lg.abort() is None
 
 
 def test_close_failure_leaves_no_file_and_keeps_the_old_one(tmp_path, monkeypatch):

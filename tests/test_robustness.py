@@ -42,8 +42,18 @@ def test_sumo_teleports_and_collisions_become_reported_events():
     rows = _event_rows(TrafficStep(t_s=12.3, vehicles={}, events=tuple(sim._pending_events)))
     assert sorted(r["kind"] for r in rows) == ["collision", "teleport"]
     assert all(r["t_s"] == 12.3 for r in rows)
-    # run_scenario reports every EventKind's count (summary["event_counts"])
-    assert {"teleport", "collision"} <= {k.value for k in EventKind}
+    # the run's bookkeeping (summary["events"] and ["event_counts"]): every event is counted,
+    # the log keeps the first 1000
+    from v2v.run import _log_event
+
+    log: list[dict] = []
+    counts = {k.value: 0 for k in EventKind}
+    for r in rows:
+        _log_event(r, log, counts)
+    assert counts["teleport"] == 1 and counts["collision"] == 1 and log == rows
+    for i in range(1200):
+        _log_event({"t_s": float(i), "kind": "lane_change", "vehicle": "c1.1"}, log, counts)
+    assert counts["lane_change"] == 1200 and len(log) == 1000 and log[:2] == rows
 
 
 _CODE_CALLS = {"loads", "load", "unsafe_load", "full_load"}  # deserializers: only tomllib / json
