@@ -280,6 +280,25 @@ def test_missing_and_unknown_inputs_raise_user_error(tmp_path):
     assert e.value.field == "network.net_file"
 
 
+def test_files_that_are_not_sumo_nets_or_osm(tmp_path):
+    """A net_file whose root is not <net>, or a <net> SUMO cannot read, is a UserError naming
+    network.net_file (not a sumolib KeyError); a failed OSM import leaves no empty net folder."""
+    fake = tmp_path / "routes.net.xml"
+    fake.write_text('<?xml version="1.0"?>\n<!-- a comment -->\n<routes></routes>\n')
+    with pytest.raises(UserError, match="root element is not <net>") as e:
+        nets.resolve_net({"net_file": fake})
+    assert e.value.field == "network.net_file"
+    fake.write_text("<net>garbage</net>")
+    with pytest.raises(UserError, match="SUMO cannot read") as e:
+        nets.resolve_net({"net_file": fake})
+    assert e.value.field == "network.net_file"
+    osm = tmp_path / "garbage.osm"
+    osm.write_text("this is not OSM")
+    with pytest.raises(UserError) as e:
+        nets.import_osm(osm, "zz", tmp_path / "out")
+    assert e.value.field == "network.osm_file" and not (tmp_path / "out" / "zz").exists()
+
+
 def test_netconvert_failure_is_one_user_error_line(tmp_path, monkeypatch):
     d = tmp_path / "broken"
     d.mkdir()

@@ -362,7 +362,11 @@ def test_scheduler_port_that_is_not_dask_fails_in_one_line_and_writes_nothing(ti
 
     import v2v.sweep as sweep
 
-    srv = http.server.ThreadingHTTPServer(("127.0.0.1", 0), http.server.BaseHTTPRequestHandler)
+    class Quiet(http.server.BaseHTTPRequestHandler):
+        def log_message(self, *args):  # (it answers the Dask frame with 400 Bad request)
+            pass
+
+    srv = http.server.ThreadingHTTPServer(("127.0.0.1", 0), Quiet)
     threading.Thread(target=srv.serve_forever, daemon=True).start()
     monkeypatch.setattr(sweep, "SCHEDULER_CONNECT_S", 2.0)
     out = tmp_path / "o"

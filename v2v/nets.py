@@ -450,7 +450,11 @@ def longest_route(net_path: str | os.PathLike, *, max_sources: int = 60) -> tupl
     """
     import sumolib
 
-    net = sumolib.net.readNet(str(net_path))
+    try:
+        net = sumolib.net.readNet(str(net_path))
+    except Exception as exc:  # noqa: BLE001 - sumolib raises KeyError / SAX errors for a broken net
+        raise UserError(f"{net_path}: SUMO cannot read this net ({type(exc).__name__}: {exc})", field="network.net_file",
+                        fix="give a net built by netconvert (.net.xml[.gz])") from None
     edges = sorted((e for e in net.getEdges() if e.allows("passenger")), key=lambda e: e.getID())
     if not edges:
         return ()
@@ -491,10 +495,11 @@ def import_osm(osm_path: str | os.PathLike, name: str, out_root: str | os.PathLi
     """
     osm = Path(osm_path)
     if not osm.is_file():
-        raise UserError(f"OSM file {osm} not found", field="network.osm_file")
+        raise UserError(f"OSM file {osm} not found", field="network.osm_file", fix="give the path of an .osm extract")
     if not re.fullmatch(r"[A-Za-z0-9_.-]+", name):
         raise UserError(f"bad network name {name!r}", field="network.name", fix="use letters, digits, _ . -")
     out_dir = (NETS_DIR if out_root is None else Path(out_root)) / name
+    created = not out_dir.exists()
     out_dir.mkdir(parents=True, exist_ok=True)
     net_path = out_dir / f"{name}.net.xml"
     poly_path = out_dir / f"{name}.poly.xml"
@@ -522,6 +527,10 @@ def import_osm(osm_path: str | os.PathLike, name: str, out_root: str | os.PathLi
         resolve_heights(tmp_poly)
         os.replace(tmp_net, net_path)
         os.replace(tmp_poly, poly_path)
+    except BaseException:
+        if created:  # a failed import leaves no empty net folder behind
+            shutil.rmtree(out_dir, ignore_errors=True)
+        raise
     finally:
         tmp_net.unlink(missing_ok=True)
         tmp_poly.unlink(missing_ok=True)

@@ -485,28 +485,54 @@ def _check_scheduler_reachable(address: str, timeout_s: float = 5.0) -> None:
 SCHEDULER_CONNECT_S = 30.0  # the whole connection (TCP + the Dask handshake) to a --scheduler
 
 
+async def _identity(address: str, timeout_s: float) -> Any:
+    """The ``identity`` reply of the Dask server at ``address`` (one message each way)."""
+    from distributed.comm import connect
+
+    comm = await connect(address, timeout=timeout_s)
+    try:
+        await comm.write({"op": "identity", "reply": True})
+        return await comm.read()
+    finally:
+        comm.abort()
+
+
 def _connect(client_cls: Any, scheduler: str, timeout_s: float | None = None):
-    """A client of a running scheduler, or a one-line UserError. Dask's own timeout does not
-    bound the handshake (a port that accepts TCP but speaks something else can hang it, or
-    make it read a garbage frame length): the connection runs in a daemon thread that is
-    given ``timeout_s`` in all, and any failure is reported as the address's fault."""
+    """A client of a running scheduler, or a one-line UserError.
+
+    Dask's own timeout does not bound the handshake (a port that accepts TCP but speaks
+    something else can hang it, or make it read a garbage frame length, and a half-built
+    Client then blocks the interpreter's exit for a minute). So the address is asked for its
+    identity first, in a throw-away event loop on a daemon thread given ``timeout_s`` in all;
+    only a server that answers as a Dask ``Scheduler`` gets a Client."""
+    import asyncio
+
     timeout_s = SCHEDULER_CONNECT_S if timeout_s is None else timeout_s
     box: dict[str, Any] = {}
 
-    def connect() -> None:
+    def ask() -> None:
         try:
-            box["client"] = client_cls(scheduler, timeout=f"{timeout_s}s", set_as_default=False)
+            box["reply"] = asyncio.run(asyncio.wait_for(_identity(scheduler, timeout_s), timeout_s))
+        except TimeoutError:
+            box["error"] = f"no Dask handshake within {timeout_s:.0f} s"
         except BaseException as exc:  # noqa: BLE001 - reported below, in one line
-            box["error"] = exc
+            box["error"] = one_line_error(exc) or type(exc).__name__
 
-    t = threading.Thread(target=connect, name="v2v-scheduler-connect", daemon=True)
+    t = threading.Thread(target=ask, name="v2v-scheduler-probe", daemon=True)
     t.start()
     t.join(timeout_s + 5.0)
-    if "client" in box:
-        return box["client"]
-    why = f"no Dask handshake within {timeout_s:.0f} s" if t.is_alive() else one_line_error(box["error"])
-    raise UserError(f"{scheduler} answered but is not a usable Dask scheduler ({why})", field="--scheduler",
-                    fix="give the scheduler's own address, as printed by `dask scheduler` (default port 8786)")
+    reply = box.get("reply")
+    kind = reply.get("type") if isinstance(reply, dict) else None
+    if kind != "Scheduler":
+        why = (f"no Dask handshake within {timeout_s:.0f} s" if t.is_alive() else box.get("error")
+               or f"it answered as {kind or 'something else'}")
+        raise UserError(f"{scheduler} answered but is not a usable Dask scheduler ({why})", field="--scheduler",
+                        fix="give the scheduler's own address, as printed by `dask scheduler` (default port 8786)")
+    try:
+        return client_cls(scheduler, timeout=f"{timeout_s}s", set_as_default=False)
+    except Exception as exc:  # noqa: BLE001 - a scheduler that went away since the probe
+        raise UserError(f"cannot connect to the scheduler {scheduler}: {one_line_error(exc)}", field="--scheduler",
+                        fix="start one (dask scheduler) or give its tcp://HOST:PORT") from None
 
 
 def _open_client(scheduler: str | None, workers: int | None, host: str, n_pending: int):

@@ -228,18 +228,18 @@ def _load_one(
 ) -> tuple[list[Building], list[FoliageArea], list[str]]:
     if not path.is_file():
         raise UserError(
-            "polygon file not found", field=str(path), fix="give the path of a SUMO .poly.xml file"
+            f"polygon file {path} not found", field="network.polygon_files", fix="give the path of a SUMO .poly.xml file"
         )
     try:
         root = ET.parse(path).getroot()
     except ET.ParseError as exc:
         raise UserError(
-            f"not well-formed XML ({exc})", field=str(path), fix="regenerate the file with polyconvert"
+            f"{path} is not well-formed XML ({exc})", field="network.polygon_files", fix="regenerate the file with polyconvert"
         ) from None
     if root.tag not in ROOT_TAGS:
         raise UserError(
-            f"root element is <{root.tag}>, expected <additional> or <polygons>",
-            field=str(path),
+            f"{path}: root element is <{root.tag}>, expected <additional> or <polygons>",
+            field="network.polygon_files",
             fix="give a SUMO polygon file (polyconvert output)",
         )
     buildings: list[Building] = []
