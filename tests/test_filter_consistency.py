@@ -70,7 +70,8 @@ def _check(n_runs: int, layout: StateLayout = GNSS_LAYOUT, scn: SimScenario = GN
     """Exact consistency of the GNSS-only filter: the average NEES over runs inside its
     two-sided 95 % band [chi2_0.025(N n)/N, chi2_0.975(N n)/N] in >= 90 % of epochs, and the SD
     pseudoranges' NIS in its 99.9 % band (:func:`_nis_in_band`); the SD Dopplers' NIS, 1.2-1.6 %
-    high (see :func:`_check_calibrated`), to within the 15 % variance criterion.
+    high because of the innovation test (see :func:`_check_calibrated`), to within the 15 %
+    variance criterion.
 
     False-failure rate of the NEES criterion, measured by running it with 100 other seed
     bases: 8 / 100 and, with the Doppler criterion as here, 7 / 100 (mean NEES 1.008 n). Had epochs been
@@ -100,10 +101,15 @@ def _check_calibrated(n_runs: int, layout: StateLayout = LAYOUT, scn: SimScenari
     (Gelb 1974) pulls the range estimates short (mean normalized error -0.3 to -0.5 along the
     three UWB lines); without it the range bias goes but the ranges' vertical partial makes the
     up axis overconfident instead (position NEES 1.34 per dof instead of 1.11). Checked here:
-    sigmas right to within 15 % (mean NEES between n / 1.15^2 and 1.15^2 n: 0 / 100 seed bases
-    outside), and the NIS of pseudoranges, UWB and bearings exact (:func:`_nis_in_band`). The
-    SD Dopplers' NIS is 1.6 % high in every configuration (1.0158 GNSS-only, 1.0176 here, over
-    160 000 updates each), so it is held to the same 15 % variance criterion, not the band.
+    sigmas right to within 15 % (mean NEES between n / 1.15^2 and 1.15^2 n), and the NIS of
+    pseudoranges, UWB and bearings exact (:func:`_nis_in_band`). The SD Dopplers' NIS is
+    1.2-1.6 % high in every configuration (1.0158 GNSS-only, 1.0176 here, over 160 000
+    updates each), so it is held to the same 15 % variance criterion, not the band. That is
+    the innovation test, not the model: without it (significance 1e-15) the mean is 1.002.
+    In this world the clock drift moves as the filter's deliberately loose model says (sigma
+    141 m/s per 0.1 s); when one increment exceeds the gate, every Doppler of that vehicle
+    fails the test together (0.18 % rejected instead of 0.1 %, NIS 12.6 on average), and
+    those rejected values enter the mean; the accepted ones average 0.9945.
     False-failure rates, measured with 100 other seed bases: 1 / 100 for 20 runs (a mean NEES
     of 1.38 n), 2 / 100 for the 10-run azimuth + yaw-rate variant (bearing NIS 1.079 and 1.088
     against a band ending at 1.078)."""
