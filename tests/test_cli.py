@@ -194,3 +194,23 @@ def test_readme_scenario_reference_shows_every_field_at_its_default(tmp_path):
     assert set(data["solutions"][0]) == set(SolutionSection.model_fields)
     for vt in ("passenger", "truck"):
         assert set(data["vehicle_types"][vt]) == set(VehicleTypeConfig.model_fields)
+
+
+@pytest.mark.parametrize(("override", "fix"), [
+    ("clusters.0.vehicles=1", "use a value >= 2"),
+    ("duration_s=-1", "use a value > 0"),
+    ("sensors.bearing.sigma_deg=45", "use a value <= 30"),
+    ("sensors.gnss.oscillator='XO'", "use one of 'TCXO' or 'OCXO'"),
+    ("seed=1.5", "give a whole number"),
+    ("sensors.gnss.errors.noise=3", "give true or false"),
+    ("clusters.0.lanes=[]", "give at least 1 item"),
+])
+def test_constraint_errors_say_the_bound_or_the_type(override, fix):
+    """A field outside its declared bound or of the wrong type: the one-line error's fix says
+    what is allowed (pydantic's constraint), not just "correct the value"."""
+    from v2v.config.scenario import load_scenario
+    from v2v.errors import UserError
+
+    with pytest.raises(UserError) as e:
+        load_scenario(None, [override])
+    assert e.value.field == override.split("=")[0] and e.value.fix.startswith(fix), e.value.one_line()

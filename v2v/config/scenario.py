@@ -269,7 +269,7 @@ def _format_validation_error(err: ValidationError, data: dict[str, Any], source:
         return UserError(f"required key missing in {source}", field=loc, fix="add it (see the README scenario reference)")
     msg = e["msg"].removeprefix("Value error, ")
     # a validator may name the field and the fix itself: "@field: message -- fix: what to do"
-    fix = "correct the value"
+    fix = _constraint_fix(e)
     if " -- fix: " in msg:
         msg, fix = msg.split(" -- fix: ", 1)
     if msg.startswith("@") and ": " in msg:
@@ -278,6 +278,33 @@ def _format_validation_error(err: ValidationError, data: dict[str, Any], source:
     got = e.get("input")
     got_s = f" (got {got!r})" if not isinstance(got, dict | list) and got is not None and _quotes_not(msg, got) else ""
     return UserError(f"{msg}{got_s} in {source}", field=loc or "scenario", fix=fix)
+
+
+_BOUND_WORDS = {"greater_than": ("gt", "> {}"), "greater_than_equal": ("ge", ">= {}"),
+                "less_than": ("lt", "< {}"), "less_than_equal": ("le", "<= {}")}
+_TYPE_FIXES = {"int_parsing": "give a whole number", "int_from_float": "give a whole number",
+               "float_parsing": "give a number (no quotes)", "float_type": "give a number",
+               "bool_parsing": "give true or false", "bool_type": "give true or false",
+               "string_type": 'give a quoted string, e.g. "name"', "list_type": "give a list, e.g. [0, 1]",
+               "too_short": "give at least {min_length} item(s)", "too_long": "give at most {max_length} item(s)",
+               "literal_error": "use one of {expected}", "datetime_parsing": 'give an ISO 8601 time, e.g. "2021-04-28T19:00:00Z"',
+               "datetime_from_date_parsing": 'give an ISO 8601 time, e.g. "2021-04-28T19:00:00Z"'}
+
+
+def _constraint_fix(e: Any) -> str:
+    """The fix part of a pydantic error: the bound or the expected type, when pydantic says it."""
+    ctx = e.get("ctx") or {}
+    kind = e.get("type", "")
+    if kind in _BOUND_WORDS:
+        key, fmt = _BOUND_WORDS[kind]
+        if key in ctx:
+            return "use a value " + fmt.format(ctx[key])
+    if kind in _TYPE_FIXES:
+        try:
+            return _TYPE_FIXES[kind].format(**ctx)
+        except (KeyError, IndexError):
+            return _TYPE_FIXES[kind].split(" {")[0]
+    return "correct the value"
 
 
 def _quotes_not(msg: str, got: Any) -> bool:
