@@ -336,6 +336,7 @@ def test_malformed_file_raises_user_error_naming_file(tmp_path, body, what):
     with pytest.raises(UserError) as exc:
         load_polygons([p])
     assert str(p) in str(exc.value) and what in str(exc.value)
+    assert exc.value.field == "network.polygon_files"  # the scenario field; the message names the file
 
 
 def test_missing_file_raises_user_error(tmp_path):

@@ -182,23 +182,23 @@ def _parse_shape(shape: str, path: Path, pid: str) -> NDArray[np.float64]:
         parts = tok.split(",")
         if len(parts) not in (2, 3):
             raise UserError(
-                f"poly '{pid}': shape point '{tok}' is not 'x,y'",
-                field=str(path),
+                f"{path}: poly '{pid}': shape point '{tok}' is not 'x,y'",
+                field="network.polygon_files",
                 fix="write shape as space-separated 'x,y' pairs (SUMO polygon format)",
             )
         try:
             pts.append((float(parts[0]), float(parts[1])))
         except ValueError:
             raise UserError(
-                f"poly '{pid}': shape point '{tok}' is not numeric",
-                field=str(path),
+                f"{path}: poly '{pid}': shape point '{tok}' is not numeric",
+                field="network.polygon_files",
                 fix="write shape as space-separated 'x,y' pairs of numbers in metres",
             ) from None
     arr = np.asarray(pts, dtype=float).reshape(-1, 2)
     if not np.all(np.isfinite(arr)):
         raise UserError(
-            f"poly '{pid}': shape has non-finite coordinates",
-            field=str(path),
+            f"{path}: poly '{pid}': shape has non-finite coordinates",
+            field="network.polygon_files",
             fix="remove nan/inf coordinates from the polygon file",
         )
     return arr
@@ -254,15 +254,15 @@ def _load_one(
             continue
         if pid is None:
             raise UserError(
-                f"a <{el.tag}> of type '{el.get('type')}' has no id",
-                field=str(path),
+                f"{path}: a <{el.tag}> of type '{el.get('type')}' has no id",
+                field="network.polygon_files",
                 fix="give every polygon an id",
             )
         if el.tag == "poly":
             shape = el.get("shape")
             if shape is None:
                 raise UserError(
-                    f"poly '{pid}' has no shape attribute", field=str(path), fix='add shape="x1,y1 x2,y2 ..."'
+                    f"{path}: poly '{pid}' has no shape attribute", field="network.polygon_files", fix='add shape="x1,y1 x2,y2 ..."'
                 )
             xy = _parse_shape(shape, path, pid)
         else:
@@ -270,15 +270,15 @@ def _load_one(
                 xy = np.array([[float(el.get("x", "")), float(el.get("y", ""))]])
             except ValueError:
                 raise UserError(
-                    f"poi '{pid}' needs numeric x and y",
-                    field=str(path),
+                    f"{path}: poi '{pid}' needs numeric x and y",
+                    field="network.polygon_files",
                     fix='write x="..." y="..." in metres',
                 ) from None
         if el.get("geo", "0").lower() in ("1", "true"):
             if geo_reference is None:
                 raise UserError(
-                    f"{el.tag} '{pid}' has geo coordinates (lon,lat) but no geo-reference was given",
-                    field=str(path),
+                    f"{path}: {el.tag} '{pid}' has geo coordinates (lon,lat) but no geo-reference was given",
+                    field="network.polygon_files",
                     fix="run polyconvert without --proj.plain-geo, or pass the net's GeoReference",
                 )
             x, y = geo_reference.geodetic_to_xy(np.radians(xy[:, 1]), np.radians(xy[:, 0]))
@@ -351,8 +351,8 @@ def load_polygons(
         for obj in (*b, *f):
             if obj.id in seen:
                 raise UserError(
-                    f"polygon id '{obj.id}' appears twice (also in {seen[obj.id]})",
-                    field=str(path),
+                    f"{path}: polygon id '{obj.id}' appears twice (also in {seen[obj.id]})",
+                    field="network.polygon_files",
                     fix="give each polygon file once; polygon ids must be unique across files",
                 )
             seen[obj.id] = path
