@@ -56,7 +56,9 @@ def child_seeds(seed: int) -> list[np.random.SeedSequence]:
 # --------------------------------------------------------------------------- sensors
 
 
-def build_ephemeris(scenario: Scenario, gps_start_s: float, base_dir: Path | None = None):
+def build_ephemeris(scenario: Scenario, gps_start_s: float):
+    """The scenario's sky: the nominal constellation, or its RINEX file (a relative path is
+    relative to the working directory; :func:`v2v.run.run_scenario` makes it absolute first)."""
     sec = scenario.sensors.gnss
     if sec.ephemeris == "nominal":
         from v2v.sensors.gnss.constellation import NominalConstellation
@@ -65,8 +67,6 @@ def build_ephemeris(scenario: Scenario, gps_start_s: float, base_dir: Path | Non
     from v2v.sensors.gnss.rinex import read_rinex_nav
 
     path = Path(sec.ephemeris)
-    if not path.is_absolute() and base_dir is not None:
-        path = base_dir / path
     if not path.is_file():
         raise UserError(f"RINEX navigation file {str(path)!r} not found", field="sensors.gnss.ephemeris",
                         fix='give an existing RINEX 2/3 nav file, or "nominal"')
@@ -84,8 +84,7 @@ def build_ephemeris(scenario: Scenario, gps_start_s: float, base_dir: Path | Non
     return eph
 
 
-def build_gnss(scenario: Scenario, gps_start_s: float, seed: np.random.SeedSequence, occlusion, georef,
-               base_dir: Path | None = None):
+def build_gnss(scenario: Scenario, gps_start_s: float, seed: np.random.SeedSequence, occlusion, georef):
     from v2v.sensors.gnss.atmosphere import IonosphereConfig, SatelliteErrorConfig, TroposphereConfig
     from v2v.sensors.gnss.clock import OCXO, TCXO, ClockConfig
     from v2v.sensors.gnss.errors import GnssErrorConfig, MultipathConfig, TrackingConfig
@@ -102,7 +101,7 @@ def build_gnss(scenario: Scenario, gps_start_s: float, seed: np.random.SeedSeque
         tracking=TrackingConfig(noise_enabled=e.noise, foliage_enabled=e.foliage, nlos_enabled=e.nlos),
     )
     cfg = GnssReceiverConfig(rate_hz=sec.rate_hz, elevation_mask_rad=float(np.radians(sec.elevation_mask_deg)), errors=errors)
-    eph = build_ephemeris(scenario, gps_start_s, base_dir)
+    eph = build_ephemeris(scenario, gps_start_s)
     return GnssSynthesizer(eph, cfg, seed, gps_start_s, occlusion=occlusion, georef=georef if occlusion is not None else None)
 
 

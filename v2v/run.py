@@ -228,11 +228,11 @@ def run_scenario(
     scenario = absolute_paths(scenario, base_dir)
     with _gc_for_a_run():
         return _run_scenario(scenario, out_dir, quiet=quiet, replay=replay, save_measurements=save_measurements,
-                             base_dir=base_dir, chunk_s=chunk_s)
+                             chunk_s=chunk_s)
 
 
 def _run_scenario(scenario: Scenario, out_dir: Path, *, quiet: bool, replay: bool, save_measurements: bool,
-                  base_dir: Path | None, chunk_s: float | None) -> RunResult:
+                  chunk_s: float | None) -> RunResult:
     """:func:`run_scenario` (outside its garbage-collection settings)."""
     import pickle
 
@@ -321,7 +321,7 @@ def _run_scenario(scenario: Scenario, out_dir: Path, *, quiet: bool, replay: boo
             _say(quiet or n_filters == 0, f"filtering: {len(scenario.solutions)} solution(s) x {len(scenario.clusters)} cluster(s)")
 
             # sensors -------------------------------------------------------------------
-            gnss = build_gnss(scenario, gps_start, seeds[STREAM_GNSS], occlusion, net.georef, base_dir)
+            gnss = build_gnss(scenario, gps_start, seeds[STREAM_GNSS], occlusion, net.georef)
             uwb_net = build_uwb(scenario, vehicles, seeds[STREAM_UWB]) if "uwb" in used else None
             uwb_rng = np.random.default_rng(seeds[STREAM_UWB].spawn(2)[1]) if uwb_net is not None else None
             uwb_stream = None

@@ -466,23 +466,7 @@ def _remove_staging(runs_dir: Path) -> None:
 _SCHEDULER_RE = re.compile(r"^(?:tcp://)?(?P<host>\[[0-9A-Fa-f:.]+\]|[A-Za-z0-9._-]+):(?P<port>\d{1,5})$")
 
 
-def _check_scheduler_reachable(address: str, timeout_s: float = 5.0) -> None:
-    """Fail fast, in one line, on a malformed or unreachable ``tcp://HOST:PORT``."""
-    import socket
-
-    m = _SCHEDULER_RE.match(address.strip())
-    if m is None:
-        raise UserError(f"{address!r} is not a scheduler address", field="--scheduler",
-                        fix="give tcp://HOST:PORT, as printed by `dask scheduler`")
-    host, port = m["host"].strip("[]"), int(m["port"])
-    try:
-        socket.create_connection((host, port), timeout=timeout_s).close()
-    except OSError as exc:
-        raise UserError(f"no scheduler answers at {address} ({one_line_error(exc)})", field="--scheduler",
-                        fix="start one (`dask scheduler`) or check the host and port") from None
-
-
-SCHEDULER_CONNECT_S = 30.0  # the whole connection (TCP + the Dask handshake) to a --scheduler
+SCHEDULER_CONNECT_S = 30.0  # the Dask handshake with a --scheduler, in all
 
 
 async def _identity(address: str, timeout_s: float) -> Any:
@@ -497,42 +481,49 @@ async def _identity(address: str, timeout_s: float) -> Any:
         comm.abort()
 
 
-def _connect(client_cls: Any, scheduler: str, timeout_s: float | None = None):
-    """A client of a running scheduler, or a one-line UserError.
+def _check_scheduler_reachable(address: str, timeout_s: float = 5.0) -> None:
+    """Fail fast, in one line, on a malformed or unreachable ``tcp://HOST:PORT``, or one that
+    answers but is not a Dask scheduler.
 
     Dask's own timeout does not bound the handshake (a port that accepts TCP but speaks
     something else can hang it, or make it read a garbage frame length, and a half-built
     Client then blocks the interpreter's exit for a minute). So the address is asked for its
-    identity first, in a throw-away event loop on a daemon thread given ``timeout_s`` in all;
-    only a server that answers as a Dask ``Scheduler`` gets a Client."""
+    identity, in a throw-away event loop on a daemon thread given ``SCHEDULER_CONNECT_S`` in
+    all; only a server that answers as a Dask ``Scheduler`` passes."""
     import asyncio
+    import socket
 
-    timeout_s = SCHEDULER_CONNECT_S if timeout_s is None else timeout_s
+    m = _SCHEDULER_RE.match(address.strip())
+    if m is None:
+        raise UserError(f"{address!r} is not a scheduler address", field="--scheduler",
+                        fix="give tcp://HOST:PORT, as printed by `dask scheduler`")
+    host, port = m["host"].strip("[]"), int(m["port"])
+    try:
+        socket.create_connection((host, port), timeout=timeout_s).close()
+    except OSError as exc:
+        raise UserError(f"no scheduler answers at {address} ({one_line_error(exc)})", field="--scheduler",
+                        fix="start one (`dask scheduler`) or check the host and port") from None
+    wait_s = SCHEDULER_CONNECT_S
     box: dict[str, Any] = {}
 
     def ask() -> None:
         try:
-            box["reply"] = asyncio.run(asyncio.wait_for(_identity(scheduler, timeout_s), timeout_s))
+            box["reply"] = asyncio.run(asyncio.wait_for(_identity(address, wait_s), wait_s))
         except TimeoutError:
-            box["error"] = f"no Dask handshake within {timeout_s:.0f} s"
+            box["error"] = f"no Dask handshake within {wait_s:.0f} s"
         except BaseException as exc:  # noqa: BLE001 - reported below, in one line
             box["error"] = one_line_error(exc) or type(exc).__name__
 
     t = threading.Thread(target=ask, name="v2v-scheduler-probe", daemon=True)
     t.start()
-    t.join(timeout_s + 5.0)
+    t.join(wait_s + 5.0)
     reply = box.get("reply")
     kind = reply.get("type") if isinstance(reply, dict) else None
     if kind != "Scheduler":
-        why = (f"no Dask handshake within {timeout_s:.0f} s" if t.is_alive() else box.get("error")
+        why = (f"no Dask handshake within {wait_s:.0f} s" if t.is_alive() else box.get("error")
                or f"it answered as {kind or 'something else'}")
-        raise UserError(f"{scheduler} answered but is not a usable Dask scheduler ({why})", field="--scheduler",
+        raise UserError(f"{address} answered but is not a usable Dask scheduler ({why})", field="--scheduler",
                         fix="give the scheduler's own address, as printed by `dask scheduler` (default port 8786)")
-    try:
-        return client_cls(scheduler, timeout=f"{timeout_s}s", set_as_default=False)
-    except Exception as exc:  # noqa: BLE001 - a scheduler that went away since the probe
-        raise UserError(f"cannot connect to the scheduler {scheduler}: {one_line_error(exc)}", field="--scheduler",
-                        fix="start one (dask scheduler) or give its tcp://HOST:PORT") from None
 
 
 def _open_client(scheduler: str | None, workers: int | None, host: str, n_pending: int):
@@ -543,8 +534,12 @@ def _open_client(scheduler: str | None, workers: int | None, host: str, n_pendin
     import dask
     from dask.distributed import Client, LocalCluster
 
-    if scheduler:
-        return _connect(Client, scheduler), None
+    if scheduler:  # (checked by _check_scheduler_reachable before anything was written)
+        try:
+            return Client(scheduler, timeout=f"{SCHEDULER_CONNECT_S}s", set_as_default=False), None
+        except Exception as exc:  # noqa: BLE001 - a scheduler that went away since the check
+            raise UserError(f"cannot connect to the scheduler {scheduler}: {one_line_error(exc)}", field="--scheduler",
+                            fix="start one (dask scheduler) or give its tcp://HOST:PORT") from None
     cores = len(os.sched_getaffinity(0)) if hasattr(os, "sched_getaffinity") else (os.cpu_count() or 1)
     n = max(1, min(workers or cores, n_pending))
     # Worker processes inherit an ignored SIGINT: Ctrl-C in the terminal reaches only this process,
@@ -591,13 +586,18 @@ def run_study(
     runs_dir = out / "runs"
     if scheduler and _scan(study, runs_dir)[1]:
         _check_scheduler_reachable(scheduler)  # before anything is written
+    _make_folder(out)
+    with _FolderLock(out):
+        return _run_study_locked(study, out, scheduler, workers, host, quiet, flush_every_s, wall0)
+
+
+def _make_folder(out: Path) -> None:
+    """``out`` and its parents, or a one-line UserError naming --out."""
     try:
         out.mkdir(parents=True, exist_ok=True)
     except OSError as exc:
         raise UserError(f"cannot create the folder {out} ({exc.strerror or exc})", field="--out",
                         fix="give a folder (not a file) that can be written") from None
-    with _FolderLock(out):
-        return _run_study_locked(study, out, scheduler, workers, host, quiet, flush_every_s, wall0)
 
 
 def _scan(study: Study, runs_dir: Path) -> tuple[dict[str, dict[str, Any]], list[RunSpec]]:
@@ -790,11 +790,7 @@ def write_report(sweep_dir: str | Path, out_dir: str | Path | None = None) -> Re
         raise UserError(f"{runs_file} lists {n} run(s), none finished", field="DIR",
                         fix="run the study (again) first; failed runs have their one-line error in the `error` column")
     out = Path(out_dir) if out_dir is not None else src
-    try:
-        out.mkdir(parents=True, exist_ok=True)
-    except OSError as exc:
-        raise UserError(f"cannot create the folder {out} ({exc.strerror or exc})", field="--out",
-                        fix="give a folder (not a file) that can be written") from None
+    _make_folder(out)
     grid_cols = _grid_columns(src, df)
     df, solutions = _with_vehicle_means(df)
     agg = aggregate_runs(df, grid_cols)
