@@ -173,21 +173,43 @@ def build_filter(sol: SolutionSection, lead: str, vehicles: Sequence[str], beari
 # --------------------------------------------------------------------------- the stream
 
 
-@dataclass(frozen=True)
 class Event:
     """A batch of measurements with one time tag, as the lead's filter receives it.
 
     ``bad_prns``: per vehicle, the PRNs whose pseudorange the simulator corrupted beyond the
     filter's model (NLOS or an injected fault), computed once per event for every solution.
+
+    A UWB event delivered by the exchange holds one range: range ``uwb_index`` of the chunk's
+    :class:`UwbRanges` ``uwb_source``; :attr:`uwb` is that range as its own ``UwbRanges``
+    (views), built when first read (a run of UWB events is filtered from the source's columns,
+    :meth:`SolutionRunner._uwb_run`). Read-only by convention, like the frozen record it was.
     """
 
-    t_s: float
-    kind: str  # "gnss" | "uwb" | "bearing"
-    gnss: dict[str, GnssEpoch] | None = None
-    uwb: UwbRanges | None = None
-    bearings: Bearings | None = None
-    lead_base_ecef_m: np.ndarray | None = None
-    bad_prns: dict[str, frozenset[int]] | None = None
+    __slots__ = ("t_s", "kind", "gnss", "_uwb", "bearings", "lead_base_ecef_m", "bad_prns", "uwb_source", "uwb_index")
+
+    def __init__(self, t_s: float, kind: str, gnss: dict[str, GnssEpoch] | None = None, uwb: UwbRanges | None = None,
+                 bearings: Bearings | None = None, lead_base_ecef_m: np.ndarray | None = None,
+                 bad_prns: dict[str, frozenset[int]] | None = None) -> None:
+        self.t_s, self.kind, self.gnss, self._uwb, self.bearings = t_s, kind, gnss, uwb, bearings  # "gnss" | "uwb" | "bearing"
+        self.lead_base_ecef_m, self.bad_prns = lead_base_ecef_m, bad_prns
+        self.uwb_source: UwbRanges | None = None
+        self.uwb_index = -1
+
+    @classmethod
+    def one_range(cls, t_s: float, src: UwbRanges, k: int) -> Event:
+        """The UWB event of range ``k`` of ``src``."""
+        ev = cls(t_s, "uwb")
+        ev.uwb_source, ev.uwb_index = src, k
+        return ev
+
+    @property
+    def uwb(self) -> UwbRanges | None:
+        if self._uwb is None and self.uwb_source is not None:
+            self._uwb = _one_range(self.uwb_source, self.uwb_index)
+        return self._uwb
+
+    def __repr__(self) -> str:
+        return f"Event({self.t_s!r}, {self.kind!r})"
 
 
 _KIND_RANK = {"gnss": 0, "uwb": 1, "bearing": 2}
@@ -327,7 +349,7 @@ class ExchangeStream:
             elif m.kind == "uwb":
                 for g in group:
                     src, idx = g.payload
-                    events.append(Event(m.t_s, "uwb", uwb=_one_range(src, idx)))
+                    events.append(Event.one_range(m.t_s, src, idx))
             elif m.kind == "bearing":  # every delivered packet of this time tag, in measurement order
                 srcs = {id(g.payload[0]): g.payload[0] for g in group}
                 if len(srcs) == 1:
@@ -392,11 +414,15 @@ class UpdateLog:
     them back with :meth:`columns` (or :attr:`SolutionRecord.updates`)."""
 
     def __init__(self) -> None:
-        self._pending: list[tuple[float, Sequence[UpdateInfo], Sequence[bool]]] = []  # per event
+        self._pending: list[tuple[float | np.ndarray, Sequence[UpdateInfo], Sequence[bool]]] = []  # per event or run
         self._file: Any = None
         self.n = 0
 
     def add(self, t_s: float, infos: Sequence[UpdateInfo], faulty: Sequence[bool]) -> None:
+        self._pending.append((t_s, infos, faulty))
+
+    def add_records(self, t_s: np.ndarray, infos: Sequence[UpdateInfo], faulty: Sequence[bool]) -> None:
+        """Records of several events at once: ``t_s[i]`` is the time tag of record ``i``."""
         self._pending.append((t_s, infos, faulty))
 
     def flush(self) -> None:
@@ -409,8 +435,12 @@ class UpdateLog:
         if not n:
             self._pending = []
             return
-        t_s = np.repeat(np.array([t for t, _, _ in self._pending], dtype=float),
-                        [len(i) for _, i, _ in self._pending])
+        if any(isinstance(t, np.ndarray) for t, _, _ in self._pending):  # some entries carry a time per record
+            t_s = np.concatenate([np.asarray(t, dtype=float) if isinstance(t, np.ndarray) else np.full(len(i), t, dtype=float)
+                                  for t, i, _ in self._pending])
+        else:
+            t_s = np.repeat(np.array([t for t, _, _ in self._pending], dtype=float),
+                            [len(i) for _, i, _ in self._pending])
         faulty = np.fromiter((f for _, _, fs in self._pending for f in fs), bool, n)
         # the UpdateInfo fields column by column; a batch of accepted updates (UpdateBatch)
         # straight from its columns, plain records field by field
@@ -603,6 +633,14 @@ def _faulty_flags(infos: Sequence[UpdateInfo], ev: Event) -> list[bool]:
     return [_faulty(info, ev) for info in infos]
 
 
+def _kinds(infos: Sequence[UpdateInfo]) -> list[str]:
+    """The kind of each record of ``infos`` (batches from their one kind)."""
+    out: list[str] = []
+    for seg in _segments(infos):
+        out += [seg.kind] * len(seg) if isinstance(seg, UpdateBatch) else [info.kind for info in seg]
+    return out
+
+
 def _segments(infos: Sequence[UpdateInfo]) -> Sequence[Sequence[UpdateInfo]]:
     """The record lists and column batches of ``infos`` (an :class:`Updates`), or ``infos`` as one piece."""
     return infos.parts if isinstance(infos, Updates) else (infos,)
@@ -728,25 +766,44 @@ class SolutionRunner:
                  t_filter: float) -> tuple[int, float, Updates]:
         """The UWB events from ``events[ei]`` up to the next other event or ``t_out``, as
         the loop of :meth:`run` would process them; returns (next event index, filter time,
-        their update records)."""
+        their update records). The ranges are read from the columns of their sources
+        (:attr:`Event.uwb_source`) and filtered in one :meth:`ClusterEkf.update_uwb_run`
+        call; the update log gets each record with its event's time tag and faulty flag."""
         n = len(events)
         dts: list[float] = []
-        run: list[Event] = []
+        t_ev: list[float] = []
+        a: list[str] = []
+        b: list[str] = []
+        z: list[float] = []
+        bad: list[bool] = []  # NLOS or an injected fault (what _faulty_flags says of a UWB event)
         last_heard = self.last_heard
         while ei < n and events[ei].kind == "uwb" and events[ei].t_s <= t_out + 1e-9:
             ev = events[ei]
             ei += 1
-            for v in ev.uwb.a + ev.uwb.b:  # type: ignore[union-attr]
-                last_heard[v] = ev.t_s
+            src, k = ev.uwb_source, ev.uwb_index
+            if src is None:  # an event built with its range object
+                src, k = ev.uwb, 0
+                assert src is not None
+            ak, bk = src.a[k], src.b[k]
+            last_heard[ak] = ev.t_s
+            last_heard[bk] = ev.t_s
+            a.append(ak)
+            b.append(bk)
+            z.append(src.range_m[k])
+            fault = src.errors_m.get("fault")
+            bad.append(not bool(src.los[k]) or (fault is not None and float(fault[k]) != 0.0))
+            t_ev.append(ev.t_s)
             dts.append(max(0.0, ev.t_s - t_filter))
             t_filter = max(t_filter, ev.t_s)
-            run.append(ev)
-        out = Updates()
-        for ev, infos in zip(run, self.ekf.update_uwb_events(dts, [ev.uwb for ev in run]), strict=True):
-            if infos:
-                self.rec.log.add(ev.t_s, infos, _faulty_flags(infos, ev))
-                out += infos
-        return ei, t_filter, out
+        event_of, infos = self.ekf.update_uwb_run(dts, a, b, np.array(z, dtype=float))
+        if not len(infos):
+            return ei, t_filter, Updates()
+        if any(bad):
+            faulty = [bad[e] and info_kind == KIND_UWB for e, info_kind in zip(event_of, _kinds(infos), strict=True)]
+        else:
+            faulty = [False] * len(infos)
+        self.rec.log.add_records(np.array(t_ev)[event_of], infos, faulty)
+        return ei, t_filter, Updates([infos])
 
     def finish(self) -> SolutionRecord:
         self.rec.counters = dict(self.ekf.counters)

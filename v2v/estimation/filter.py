@@ -1098,6 +1098,25 @@ class ClusterFilterBase(ABC):
             out.append(self.update_uwb(ranges))
         return out
 
+    def update_uwb_run(self, dts_s: Sequence[float], a: Sequence[str], b: Sequence[str],
+                       z: F64) -> tuple[list[int], Sequence[UpdateInfo]]:
+        """UWB events of one range each: for each ``e``, :meth:`predict` over ``dts_s[e]`` then
+        :meth:`update_uwb` of the range ``a[e]`` -> ``b[e]``, ``z[e]`` (m). Returns the event of
+        each update record and the records, in update order (what :meth:`update_uwb_events`
+        gives per event, without the per-event range objects). The production engine runs
+        the whole run as one compiled call."""
+        zf = np.asarray(z, dtype=float)
+        event_of: list[int] = []
+        out = Updates()
+        for e, dt in enumerate(dts_s):
+            self.predict(dt)
+            ze = zf[e:e + 1]
+            if self._usable_pairs(KIND_UWB, (a[e],), (b[e],), ze):
+                recs = self._uwb_sequence([a[e]], [b[e]], ze)
+                event_of += [e] * len(recs)
+                out += recs
+        return event_of, out
+
     def _usable_pairs(self, kind: str, a: tuple[str, ...], b: tuple[str, ...], z: F64) -> list[int]:
         """Indices of the measurements that pass :meth:`_pair_usable` (which counts the others)."""
         lay = self.layout
@@ -1625,6 +1644,31 @@ class ClusterEkf(ClusterFilterBase):
         # (ks increases: one contiguous slice per event)
         cut = np.searchsorted(np.asarray(ks, dtype=np.int64), np.asarray(starts, dtype=np.int64)).tolist()
         return [infos[cut[e]:cut[e + 1]] for e in range(len(events))]
+
+    def update_uwb_run(self, dts_s: Sequence[float], a: Sequence[str], b: Sequence[str],
+                       z: F64) -> tuple[list[int], Sequence[UpdateInfo]]:
+        """:meth:`ClusterFilterBase.update_uwb_run` in one
+        :func:`v2v.estimation.kernels.uwb_event_run` call (the same predictions and updates as
+        :meth:`update_uwb_events` of one-range events). The usable ranges are chosen for the
+        whole run at once: readiness does not change within a run of UWB events."""
+        for dt in dts_s:
+            if not (math.isfinite(dt) and dt >= 0.0):
+                raise ValueError(f"dt_s must be finite and >= 0, got {dt!r}")
+        zf = np.asarray(z, dtype=float)
+        use = self._usable_pairs(KIND_UWB, tuple(a), tuple(b), zf)
+        n = len(dts_s)
+        if len(use) == n:  # the usual case: every range usable, event e's range is range e
+            a_list, b_list, zu = list(a), list(b), zf
+            starts = np.arange(n + 1, dtype=np.int64)
+        else:
+            a_list, b_list, zu = [a[k] for k in use], [b[k] for k in use], zf[use]
+            starts = np.searchsorted(np.asarray(use, dtype=np.int64), np.arange(n + 1, dtype=np.int64)).astype(np.int64)
+        pairs, args = self._uwb_kernel_args(a_list, b_list, zu)
+        recs = kernels.uwb_event_run(self._x, self._P, np.asarray(dts_s, dtype=float), starts,
+                                     *args, self._veh0, self._nveh, self._vpar, self._rw_diag, self._rw_psd,
+                                     self._az_ia, self._az_ir, self._apar)
+        ks, infos = self._uwb_records(recs, a_list, b_list, pairs)
+        return (ks if len(use) == n else [use[k] for k in ks]), infos
 
     def _bearing_sequence(self, a_list: list[str], b_list: list[str], z: F64, az_reported: F64) -> Sequence[UpdateInfo]:
         """All usable bearings in one :func:`v2v.estimation.kernels.bearing_batch` call."""
