@@ -12,6 +12,8 @@ tight for the large ones): |a - b| <= 1e-9 * (|b| + scale of its row and column)
 
 from __future__ import annotations
 
+from dataclasses import replace
+
 import numpy as np
 import pytest
 
@@ -105,18 +107,30 @@ def test_uwb_event_runs_agree_with_one_event_at_a_time():
                             uwb_pairs=(("lead", "v1"), ("v2", "v3")), azimuth_rates=True)
     eps = simulate(scn, cfg, np.random.default_rng(7))
     run, one, ref = ClusterEkf(lay, cfg), ClusterEkf(lay, cfg), ReferenceClusterEkf(lay, cfg)
+    cols, cols_ref = ClusterEkf(lay, cfg), ReferenceClusterEkf(lay, cfg)  # update_uwb_run: the run as columns
     n_uwb = 0
     for k, ep in enumerate(eps):
-        for f in (run, one, ref):
+        for f in (run, one, ref, cols, cols_ref):
             if k > 0:
                 f.predict(scn.dt_s)
             f.update_epoch(gnss=ep.gnss, lead_base_ecef_m=ep.lead_base_ecef_m)
-        # each range its own event, 5 ms apart (two share a tag: dt = 0, no prediction)
-        events = [select_ranges(ep.uwb, np.array([i])) for i in range(ep.uwb.n)]
+        # each range its own event, 5 ms apart (two share a tag: dt = 0, no prediction); every
+        # third epoch one range is not finite (left out and counted, the others still one run)
+        uwb = ep.uwb
+        if k % 3 == 1 and uwb.n > 2:
+            uwb = replace(uwb, range_m=np.where(np.arange(uwb.n) == 1, np.nan, uwb.range_m))
+        events = [select_ranges(uwb, np.array([i])) for i in range(uwb.n)]
         dts = [0.005 * (i % 3 != 2) for i in range(len(events))]
         infos_run = run.update_uwb_events(dts, events)
         infos_one = [(one.predict(dt), one.update_uwb(e))[1] for dt, e in zip(dts, events, strict=True)]
         infos_ref = ref.update_uwb_events(dts, events)  # the base class: one at a time
+        # the same events as columns (update_uwb_run): each record tagged with its event, in
+        # update order; the same arithmetic as update_uwb_events in each engine
+        for f, g, per_event in ((cols, run, infos_run), (cols_ref, ref, infos_ref)):
+            event_of, recs = f.update_uwb_run(dts, list(uwb.a), list(uwb.b), uwb.range_m)
+            assert [(e, i.kind, i.vehicles, i.accepted, i.nis) for e, i in zip(event_of, recs, strict=True)] == \
+                   [(e, i.kind, i.vehicles, i.accepted, i.nis) for e, x in enumerate(per_event) for i in x]
+            assert np.array_equal(f.x, g.x) and np.array_equal(f.P, g.P)
         for other in (infos_one, infos_ref):
             assert [[(i.kind, i.vehicles, i.accepted) for i in x] for x in infos_run] == \
                    [[(i.kind, i.vehicles, i.accepted) for i in x] for x in other]
@@ -127,7 +141,9 @@ def test_uwb_event_runs_agree_with_one_event_at_a_time():
             np.testing.assert_array_less(np.abs(run.x - other.x), 1e-9 * (np.abs(other.x) + sd) + 1e-300)
             np.testing.assert_array_less(np.abs(run.P - other.P), 1e-9 * (np.abs(other.P) + np.outer(sd, sd)) + 1e-300)
     assert n_uwb > 50
-    assert run.counters == one.counters == ref.counters
+    assert run.counters == one.counters == ref.counters == cols.counters == cols_ref.counters
+    assert run.counters.get("nonfinite_uwb", 0) > 5
+
 
 
 def test_long_uwb_event_run_brings_the_covariance_up_to_date_midway():
