@@ -496,6 +496,45 @@ def test_nlos_echo_errors_equal_excess_path(eph):
     np.testing.assert_allclose(ep.cn0_dbhz[nl], base[nl] - tr.echo_loss_db, atol=1e-9)
 
 
+def test_echo_doppler_follows_the_reflected_path(eph):
+    """An echo-only signal's Doppler is the rate of its whole path, reflection included: for
+    the wall echo ``2 d_w cos(E) cos(A - A_n)`` of the street world (d_w = 15 m - y, facing
+    south) and an antenna driving north at v_N, the echo adds ``-2 v_N cos(E) cos(A - pi)``
+    (up to 2 v_N) to the range rate. So Doppler = carrier-phase rate for every signal, LOS
+    or echo, as in a receiver. Error-free receiver with echoes on. Tolerance 0.01 m/s: the
+    echo's change with the satellite's motion, left out (2 d_w |ds/dt| <= 2 x 15 m x
+    2.2e-4 rad/s = 6.6e-3 m/s; the central difference itself is exact to ~1e-5 m/s)."""
+    from v2v.world.occlusion import OcclusionGeometry
+
+    occ = OcclusionGeometry(_street_world())
+    err = replace(GnssErrorConfig.ideal(), tracking=TrackingConfig(noise_enabled=False, foliage_enabled=False))
+    t_c = None
+    for t in np.arange(0.0, 4 * 3600.0, 600.0):  # an epoch with echo-only satellites
+        if np.any(~synth(eph, err, occlusion=occ, georef=GEO).epoch(float(t), {"a": vstate("a", float(t), 0.0)})["a"].los):
+            t_c = float(t)
+            break
+    assert t_c is not None, "no echo-only satellite in 4 h"
+    v_n = 12.0
+    syn = synth(eph, err, occlusion=occ, georef=GEO)
+    # at y = v_n (t - t_c): 1.2 m south of the centre point, at it, 1.2 m north of it
+    before, mid, after = (syn.epoch(t, {"a": vstate("a", t, 0.0, -v_n * t_c, vel_enu=(0.0, v_n, 0.0))})["a"]
+                          for t in (t_c - 0.1, t_c, t_c + 0.1))
+    common = np.intersect1d(np.intersect1d(before.prn, mid.prn), after.prn)
+    i_b, i_m, i_a = (np.searchsorted(e.prn, common) for e in (before, mid, after))
+    nl = ~mid.los[i_m]
+    assert nl.any() and np.array_equal(before.los[i_b], mid.los[i_m]) and np.array_equal(after.los[i_a], mid.los[i_m])
+    phase_rate = GPS_L1_WAVELENGTH_M * (after.carrier_cycles[i_a] - before.carrier_cycles[i_b]) / 0.2
+    range_rate = (after.true_range_m[i_a] - before.true_range_m[i_b]) / 0.2
+    dop = mid.doppler_mps[i_m]
+    el, az = mid.elevation_rad[i_m], mid.azimuth_rad[i_m]
+    echo_rate = np.where(nl, -2.0 * v_n * np.cos(el) * np.cos(az - np.pi), 0.0)
+    print("prn", common, "echo", nl, "Doppler - phase rate (m/s)", np.round(dop - phase_rate, 4),
+          "echo rate expected", np.round(echo_rate, 3), "measured", np.round(dop - range_rate, 3))
+    assert np.all(np.abs(dop - phase_rate) < 0.01)
+    assert np.all(np.abs(dop - range_rate - echo_rate) < 0.01)
+    assert np.all(np.abs(echo_rate[nl]) > 1.0)  # the term is metres per second, not a rounding
+
+
 def test_no_gnss_epoch_is_clean(eph):
     """Everything blocked without echoes: an n = 0 epoch, no NaN, no exception."""
 

@@ -95,6 +95,13 @@ def test_sky_echo_excess_image_method(daz_rad):
     assert r.blocker_id.tolist() == ["S"]
     expected = 2.0 * 15.0 * math.cos(el) * math.cos(az - math.pi)
     assert r.echo_excess_m[0] == pytest.approx(expected, abs=ATOL_M)
+    # its gradient in the antenna's XY: d_w = 15 - y, so d(excess)/dy = -2 cos(el) cos(az - az_n)
+    # and nothing along the wall (x); a central difference of 1 cm agrees (the excess is linear)
+    np.testing.assert_allclose(r.echo_gradient_xy[0], [0.0, -2.0 * math.cos(el) * math.cos(daz_rad)], atol=1e-12)
+    fd = [(g.sky(np.array([0.0, 0.0, 1.5]) + d, np.array([az]), np.array([el])).echo_excess_m[0]
+           - g.sky(np.array([0.0, 0.0, 1.5]) - d, np.array([az]), np.array([el])).echo_excess_m[0]) / 0.02
+          for d in (np.array([0.01, 0, 0]), np.array([0, 0.01, 0]))]
+    np.testing.assert_allclose(fd, r.echo_gradient_xy[0], atol=1e-9)
 
 
 def test_sky_echo_absent_when_reflection_point_above_wall_top():
@@ -501,9 +508,19 @@ def test_sky_agrees_with_brute_force_reference_and_both_screening_paths():
     r_idx = g_index.sky_many(ants, ai, az, el, max_d)
     r_dense = g_dense.sky_many(ants, ai, az, el, max_d)
     assert r.blocked.any() and np.isfinite(r.echo_excess_m).any()
-    for f in ("blocked", "blocker_id", "echo_excess_m"):
+    for f in ("blocked", "blocker_id", "echo_excess_m", "echo_gradient_xy"):
         np.testing.assert_array_equal(getattr(r, f), getattr(r_idx, f))
         np.testing.assert_array_equal(getattr(r, f), getattr(r_dense, f))
+    # The gradient is that of the excess: a central difference over +-1 mm of antenna motion
+    # (the same wall stays the shortest echo for all but rays near a tie; those are skipped)
+    echo = np.flatnonzero(np.isfinite(r.echo_excess_m))
+    for d in (np.array([1e-3, 0.0, 0.0]), np.array([0.0, 1e-3, 0.0])):
+        up, dn = (g.sky_many(ants + sgn * d, ai, az, el, max_d).echo_excess_m for sgn in (1.0, -1.0))
+        fd = (up - dn)[echo] / 2e-3
+        same = np.isfinite(fd) & (np.abs(up - dn)[echo] < 0.01)  # no switch to another wall
+        assert same.mean() > 0.9
+        # float rounding of ~100 m excess values over 2 mm: 1e-12 m / 2e-3 m ~ 1e-9
+        np.testing.assert_allclose(fd[same], (r.echo_gradient_xy[echo] @ d[:2] / 1e-3)[same], atol=1e-6)
 
     # Per building, the local frame of its rectangle (inside test for samples).
     u = np.column_stack([np.cos(ang), np.sin(ang)])

@@ -98,7 +98,13 @@ class SkyResult:
 
     ``foliage_path_m`` is the slant length inside canopy volumes, ``foliage_loss_db`` that
     length weighted by each area's specific attenuation, ``echo_excess_m`` the excess path
-    of the shortest valid wall echo of a blocked ray (NaN when unblocked or none).
+    of the shortest valid wall echo of a blocked ray (NaN when unblocked or none), and
+    ``echo_gradient_xy`` (n, 2) its gradient with respect to the antenna's net-XY position:
+    ``d(excess)/d(x_a) = 2 (s . n) n`` (module docstring; the excess does not depend on the
+    antenna height), so the echo's path rate is ``echo_gradient_xy . v_xy`` for an antenna
+    moving at ``v_xy`` (the satellite's motion adds ``2 d_w (ds/dt . n)``, ~1e-4 rad/s times
+    the wall distance: mm/s, left out). NaN where ``echo_excess_m`` is; ``None`` from
+    objects that do not compute it (then taken as zero).
     """
 
     blocked: NDArray[np.bool_]
@@ -106,6 +112,7 @@ class SkyResult:
     foliage_path_m: FloatArray
     foliage_loss_db: FloatArray
     echo_excess_m: FloatArray
+    echo_gradient_xy: FloatArray | None = None
 
 
 @dataclass(frozen=True, kw_only=True)
@@ -281,7 +288,7 @@ def _sky_echo_candidates_kernel(
     (both screened once per antenna), wave from the front (``c = s . n > 0``),
     ``d_w tan(el) < h_w - z_a``, reflection point ``R`` on the wall segment below its top and
     within ``max_dist_m``. Returns (ray, excess ``2 d_w c``, R xyz, far point of the incident
-    leg xyz) with the same floating-point expressions as the vectorized formulation
+    leg xyz, wall) with the same floating-point expressions as the vectorized formulation
     (trigonometric inputs are computed by numpy outside).
     """
     nw = wa.shape[0]
@@ -295,6 +302,7 @@ def _sky_echo_candidates_kernel(
     f_ny = np.empty(nw)
     cap = max(64, 4 * ray_ant.shape[0])
     ri = np.empty(cap, dtype=np.int64)
+    wid = np.empty(cap, dtype=np.int64)
     exc = np.empty(cap)
     r3 = np.empty((cap, 3))
     far = np.empty((cap, 3))
@@ -343,16 +351,18 @@ def _sky_echo_candidates_kernel(
                     cap *= 2
                     ri2, exc2, r32, far2 = np.empty(cap, dtype=np.int64), np.empty(cap), np.empty((cap, 3)), np.empty(
                         (cap, 3))
-                    ri2[:count], exc2[:count], r32[:count], far2[:count] = ri, exc, r3, far
-                    ri, exc, r3, far = ri2, exc2, r32, far2
+                    wid2 = np.empty(cap, dtype=np.int64)
+                    ri2[:count], exc2[:count], r32[:count], far2[:count], wid2[:count] = ri, exc, r3, far, wid
+                    ri, exc, r3, far, wid = ri2, exc2, r32, far2, wid2
                 ri[count] = i
+                wid[count] = w
                 exc[count] = 2.0 * delta * c
                 r3[count, 0], r3[count, 1], r3[count, 2] = rx, ry, z_r
                 far[count, 0] = rx + max_dist_m * s_hx[i] / ce[i]
                 far[count, 1] = ry + max_dist_m * s_hy[i] / ce[i]
                 far[count, 2] = z_r + max_dist_m * tan_el[i]
                 count += 1
-    return ri[:count].copy(), exc[:count].copy(), r3[:count].copy(), far[:count].copy()
+    return ri[:count].copy(), exc[:count].copy(), r3[:count].copy(), far[:count].copy(), wid[:count].copy()
 
 
 @njit(**_JIT)
@@ -671,15 +681,17 @@ class OcclusionGeometry:
         r: FloatArray,
         b: FloatArray,
         n: int,
-    ) -> FloatArray:
-        """Smallest excess per group among candidates whose legs are clear (NaN if none).
+    ) -> tuple[FloatArray, NDArray[np.int64]]:
+        """Smallest excess per group among candidates whose legs are clear (NaN if none), and
+        the candidate giving it (-1 if none).
 
         Candidates are leg-checked best-first in rank windows, so a group's first window
         that holds a clear candidate gives its global minimum.
         """
         out = np.full(n, np.nan)
+        which = np.full(n, -1, dtype=np.int64)
         if group.size == 0:
-            return out
+            return out, which
         order, rank = _rank_in_group(group, excess)
         done = np.zeros(n, dtype=bool)
         for lo, hi in zip(_RANK_WINDOWS[:-1], _RANK_WINDOWS[1:], strict=True):
@@ -688,11 +700,13 @@ class OcclusionGeometry:
             if sel.size == 0:
                 continue
             clear = self._legs_clear(a[sel], r[sel], b[sel])
-            best, _ = _group_min(group[sel][clear], excess[sel][clear], n)
+            cand = sel[clear]
+            best, arg = _group_min(group[cand], excess[cand], n)
             found = np.isfinite(best)
             out[found] = best[found]
+            which[found] = cand[arg[found]]
             done |= found
-        return out
+        return out, which
 
     # ------------------------------------------------------------------ sky
     def sky(
@@ -789,14 +803,16 @@ class OcclusionGeometry:
             foliage_loss_db = np.zeros(n)
 
         echo = np.full(n, np.nan)
+        grad = np.full((n, 2), np.nan)
         if blocked.any() and self._w_len.size:
-            echo = self._sky_echo(ants, ai, az, el_c, blocked, max_dist_m)
+            echo, grad = self._sky_echo(ants, ai, az, el_c, blocked, max_dist_m)
         return SkyResult(
             blocked=blocked,
             blocker_id=blocker_id.astype(str),
             foliage_path_m=foliage_path_m,
             foliage_loss_db=foliage_loss_db,
             echo_excess_m=echo,
+            echo_gradient_xy=grad,
         )
 
     def _foliage_horizontal(
@@ -857,8 +873,9 @@ class OcclusionGeometry:
         el: FloatArray,
         blocked: NDArray[np.bool_],
         max_dist_m: float,
-    ) -> FloatArray:
-        """Shortest valid wall-echo excess of each blocked ray; ray ``i`` starts at ``ants[ai[i]]``.
+    ) -> tuple[FloatArray, FloatArray]:
+        """Shortest valid wall-echo excess of each blocked ray (ray ``i`` starts at
+        ``ants[ai[i]]``) and its gradient with respect to the antenna's XY (:class:`SkyResult`).
 
         Every (blocked ray, wall) pair is tested exactly (compiled kernel; the module
         docstring's conditions), then the candidates' legs are checked best-first
@@ -873,16 +890,22 @@ class OcclusionGeometry:
         tan_el = se / ce
         xr = ants[ai[rays]]
         s_hx, s_hy = ce * np.sin(az[rays]), ce * np.cos(az[rays])
-        ri, excess, r3, far = _sky_echo_candidates_kernel(
+        ri, excess, r3, far, wi = _sky_echo_candidates_kernel(
             np.ascontiguousarray(ants, dtype=float), ai[rays], s_hx, s_hy, ce, se, tan_el, float(max_dist_m),
             self._wa, self._w_nx, self._w_ny, self._w_dir, self._w_len, self._w_h,
         )
         out = np.full(n, np.nan)
+        grad = np.full((n, 2), np.nan)
         if ri.size == 0:
-            return out
+            return out, grad
         # _legs_clear(a, r, b) checks a->r and r->b: antenna -> R, then R -> far.
-        out[rays] = self._best_reflection(ri, excess, xr[ri], r3, far, rays.size)
-        return out
+        out[rays], which = self._best_reflection(ri, excess, xr[ri], r3, far, rays.size)
+        got = which >= 0
+        k, w = ri[which[got]], wi[which[got]]
+        nx, ny = self._w_nx[w], self._w_ny[w]
+        c2 = 2.0 * (s_hx[k] * nx + s_hy[k] * ny)  # 2 (s . n), c as the kernel computes it
+        grad[rays[got], 0], grad[rays[got], 1] = c2 * nx, c2 * ny
+        return out, grad
 
     def _sky_echo_vectorized(
         self,
@@ -892,7 +915,7 @@ class OcclusionGeometry:
         el: FloatArray,
         blocked: NDArray[np.bool_],
         max_dist_m: float,
-    ) -> FloatArray:
+    ) -> tuple[FloatArray, FloatArray]:
         """:meth:`_sky_echo` with numpy and the spatial index (reference implementation).
 
         Candidate walls are screened per antenna first (antenna in front of the wall, wall
@@ -958,7 +981,7 @@ class OcclusionGeometry:
         ri = ray_pair
         wi = wj[pair]
         if wi.size == 0:
-            return np.full(n, np.nan)
+            return np.full(n, np.nan), np.full((n, 2), np.nan)
         s_hx, s_hy = ce * np.sin(az[rays]), ce * np.cos(az[rays])
         nx, ny = self._w_nx[wi], self._w_ny[wi]
         c = s_hx[ri] * nx + s_hy[ri] * ny  # s . n
@@ -974,9 +997,10 @@ class OcclusionGeometry:
         )
         ok = (s_wall >= 0.0) & (s_wall <= 1.0)
         ri, wi, c, dw, tau, rx, ry = ri[ok], wi[ok], c[ok], dw[ok], tau[ok], rx[ok], ry[ok]
+        nx, ny = nx[ok], ny[ok]
         z_r = xr[ri, 2] + tau * se[ri]
         ok = (z_r < self._w_h[wi]) & (tau * ce[ri] <= max_dist_m)
-        ri, c, dw, z_r = ri[ok], c[ok], dw[ok], z_r[ok]
+        ri, c, dw, z_r, nx, ny = ri[ok], c[ok], dw[ok], z_r[ok], nx[ok], ny[ok]
         r_h = np.column_stack([rx[ok], ry[ok]])
         s_h = np.column_stack([s_hx, s_hy])  # (r, 2)
         excess = 2.0 * dw * c
@@ -986,10 +1010,14 @@ class OcclusionGeometry:
         te = tan_el[ri]
         far = np.column_stack([r_h + max_dist_m * s_h[ri] / ce[ri][:, None], z_r + max_dist_m * te])
         # _legs_clear(a, r, b) checks a->r and r->b: antenna -> R, then R -> far.
-        best = self._best_reflection(ri, excess, a3, r3, far, rays.size)
+        best, which = self._best_reflection(ri, excess, a3, r3, far, rays.size)
         out = np.full(n, np.nan)
         out[rays] = best
-        return out
+        grad = np.full((n, 2), np.nan)
+        got = which >= 0
+        c2 = 2.0 * c[which[got]]
+        grad[rays[got], 0], grad[rays[got], 1] = c2 * nx[which[got]], c2 * ny[which[got]]
+        return out, grad
 
     # ------------------------------------------------------------------ links
     def links(
@@ -1096,7 +1124,7 @@ class OcclusionGeometry:
         ok = (s_wall >= 0.0) & (s_wall <= 1.0) & (z_r >= 0.0) & (z_r < self._w_h[wi]) & (excess <= e_max)
         li, r_h, z_r, excess = li[ok], r_h[ok], z_r[ok], excess[ok]
         r3 = np.column_stack([r_h, z_r])
-        return self._best_reflection(li, excess, p0[li], r3, p1[li], k)
+        return self._best_reflection(li, excess, p0[li], r3, p1[li], k)[0]
 
 
 def _box_hits(

@@ -5,7 +5,7 @@ Measurement models (MacGougan 2009 eq. 3.1, 3.6 and 5.1; Misra & Enge 2011 ch. 5
     P   = rho + c dT - c dt_sv + orbit + I + T + MP + NLOS + eps_P                    (m)
     Phi = (rho + c dT - c dt_sv + orbit - I + T + mp_phi + NLOS + eps_phi) / lambda + N   (cycles)
     dP/dt = e . (v_sv - v_rx) / (1 + (e . v_sv - w e . (y_sv, -x_sv, 0)) / c)
-            + c dT/dt - c d(dt_sv)/dt + eps_D                                           (m/s)
+            + d(NLOS)/dt + c dT/dt - c d(dt_sv)/dt + eps_D                              (m/s)
 
 * ``rho`` (``true_range_m``): geometric range from the true antenna at the true reception
   time ``t = gps_start + t_s`` to the *broadcast* satellite position at the transmit time
@@ -14,8 +14,13 @@ Measurement models (MacGougan 2009 eq. 3.1, 3.6 and 5.1; Misra & Enge 2011 ch. 5
   true position; the difference to the true satellite position is the ``orbit`` term.
 * Doppler: ``e`` unit vector receiver -> satellite; the denominator is the light-time
   rate (transmit time advances by ``1 - rho_dot / c`` per received second, and the
-  Earth-rotation angle ``w tau`` changes with it): ~4 mm/s.
-  Ionosphere/troposphere/multipath rates (mm/s to cm/s) are not included.
+  Earth-rotation angle ``w tau`` changes with it): ~4 mm/s. An echo-only signal's
+  Doppler follows its reflected path: ``d(NLOS)/dt = 2 (s . n) (n . v_xy)`` for the wall
+  echo ``NLOS = 2 d_w (s . n)`` of an antenna moving at ``v_xy`` (the gradient of
+  :attr:`~v2v.world.occlusion.SkyResult.echo_gradient_xy`; up to 2 |v|, 28 m/s at 50 km/h
+  toward a wall), so code, carrier and Doppler of an echo stay consistent.
+  Ionosphere/troposphere/multipath rates (mm/s to cm/s) and the echo's change with the
+  satellite's motion (mm/s) are not included.
 * ``c dT``: receiver clock bias, two-state model (:mod:`.clock`). The epoch is tagged
   with the true time; the bias appears in the measurements only (thesis eq. 3.1).
 * ``c dt_sv`` = broadcast clock (``sv_clock_m``, incl. relativistic term and T_GD as the
@@ -58,6 +63,7 @@ synthesizing one epoch at a time (same arithmetic per pair, same draws in the sa
 
 from __future__ import annotations
 
+import math
 import zlib
 from collections.abc import Iterable, Mapping, Sequence
 from dataclasses import dataclass, field, fields
@@ -518,13 +524,22 @@ class GnssSynthesizer:
                 if cuts[-1] != ai.size:
                     cuts.append(ai.size)
                 res = [self.occlusion.sky_many(xyz, ai[a:b], az_grid[a:b], el[a:b]) for a, b in pairwise(cuts)]
-                sky = tuple(np.concatenate([getattr(r, a) for r in res]) if len(res) > 1 else getattr(res[0], a)
-                            for a in ("blocked", "echo_excess_m", "foliage_loss_db"))
             else:  # any object with the per-antenna ``sky`` method
                 po = np.concatenate([[0], np.cumsum(k_row)])
-                per = [self.occlusion.sky(xyz[i], az_grid[po[i]:po[i + 1]], el[po[i]:po[i + 1]]) for i in range(n_rows)]
-                sky = tuple(np.concatenate([np.asarray(getattr(r, a)) for r in per])
-                            for a in ("blocked", "echo_excess_m", "foliage_loss_db"))
+                res = [self.occlusion.sky(xyz[i], az_grid[po[i]:po[i + 1]], el[po[i]:po[i + 1]]) for i in range(n_rows)]
+            sky_cols = [np.concatenate([np.asarray(getattr(r, a)) for r in res]) if len(res) > 1 else np.asarray(getattr(res[0], a))
+                        for a in ("blocked", "echo_excess_m", "foliage_loss_db")]
+            grads = [getattr(r, "echo_gradient_xy", None) for r in res]
+            echo_rate = np.zeros(geom.shape[0])
+            if all(g is not None for g in grads):
+                grad = np.concatenate(grads) if len(grads) > 1 else np.asarray(grads[0])
+                # the antenna's net-XY velocity: its ENU velocity turned by the grid convergence
+                # (grid azimuth = true azimuth - gamma)
+                cg, sg = math.cos(self._convergence_rad), math.sin(self._convergence_rad)
+                v_e, v_n = np.repeat(vec[:, 0], k_row), np.repeat(vec[:, 1], k_row)
+                rate = grad[:, 0] * (v_e * cg - v_n * sg) + grad[:, 1] * (v_e * sg + v_n * cg)
+                echo_rate = np.where(np.isfinite(rate), rate, 0.0)
+            sky = (*sky_cols, echo_rate)
         return self._measure(layout, ids_e, rcvs_e, rows_e, cand, geom, vel, sky, due)
 
     def _new_receiver(self, vid: str, t_s: float) -> GnssReceiver:
@@ -611,8 +626,10 @@ class GnssSynthesizer:
             blocked = np.zeros(n_pairs, dtype=bool)
             echo = np.full(n_pairs, np.nan)
             foliage_db = np.zeros(n_pairs)
+            echo_rate = np.zeros(n_pairs)
         else:
-            blocked, echo, foliage_db = (np.asarray(a, dtype=d) for a, d in zip(sky, (bool, float, float), strict=True))
+            blocked, echo, foliage_db, echo_rate = (np.asarray(a, dtype=d) for a, d in
+                                                    zip(sky, (bool, float, float, float), strict=True))
         rows = np.concatenate(rows_e) if len(rows_e) > 1 else rows_e[0]
         k_e = np.diff(layout.pair_off) // np.diff(layout.row_off)
         slips = trk.random_slip_rate_hz > 0.0
@@ -642,7 +659,7 @@ class GnssSynthesizer:
         mpc = err.multipath
         _measure_kernel(
             layout.t_ep, layout.row_off, layout.pair_off, layout.ep_cand, layout.cand_off, geom, blocked, echo,
-            foliage_db, rows, cand, vel, dt_clk, fac, ccfg.enabled, thr, st.clock_t, jumps, cfg.elevation_mask_rad,
+            echo_rate, foliage_db, rows, cand, vel, dt_clk, fac, ccfg.enabled, thr, st.clock_t, jumps, cfg.elevation_mask_rad,
             trk.cn0_zenith_dbhz, trk.cn0_horizon_dbhz, trk.foliage_enabled, trk.foliage_max_db, trk.nlos_enabled,
             trk.echo_loss_db, trk.track_threshold_dbhz, self._dt_epoch, trk.random_slip_rate_hz, mp_on, mpc.tau_s,
             mpc.sigma_a_m, mpc.sigma_b_m, mpc.el0_rad, mpc.phase_multipath_ratio, noise_on, trk.dll_correlation_time_s,
@@ -971,7 +988,7 @@ def _clock_steps_kernel(t_ep, row_off, rows, clock_t):  # pragma: no cover - com
 
 @njit(**_JIT)
 def _measure_kernel(
-    t_ep, row_off, pair_off, ep_cand, cand_off, geom, blocked, echo, foliage_db, rows, cand_all, vel, dt_clk, fac,
+    t_ep, row_off, pair_off, ep_cand, cand_off, geom, blocked, echo, echo_rate, foliage_db, rows, cand_all, vel, dt_clk, fac,
     clk_on, jump_thr_m, clock_t, jumps, mask_rad, cn0_zen, cn0_hor, foliage_on, foliage_max,
     nlos_on, echo_loss, threshold, dt_epoch, slip_rate, mp_on, mp_tau, mp_a, mp_b, mp_el0, mp_phase_ratio, noise_on,
     dll_tau, dll_d, dll_bl, t_pre, pll_bn, dopp45, clock, z_mp, z_mpp, z_noise, ambiguity, amb_max, lock_start,
@@ -1075,6 +1092,7 @@ def _measure_kernel(
                 sv_clock_m = g[_G_CLK]
                 iono = g[_G_IONO]
                 nlos_m = echo[g0 + j] if nlos else 0.0
+                nlos_rate = echo_rate[g0 + j] if nlos else 0.0  # d(nlos_m)/dt from the antenna's motion
                 errs = (clock[r, 0], -sv_clock_m, -g[_G_SVCLKERR], g[_G_ORBIT], iono, g[_G_TROPO], mp, nlos_m, noise)
                 total = 0.0
                 for e_i in range(9):
@@ -1091,7 +1109,7 @@ def _measure_kernel(
                 e_vrx = ex * vel[i, 0] + ey * vel[i, 1] + ez * vel[i, 2]
                 range_rate = (e_vsv - e_vrx) / (1.0 + (e_vsv - e_rot) / SPEED_OF_LIGHT_MPS)
                 out[_O_PR, t] = pr
-                out[_O_DOPP, t] = range_rate + clock[r, 1] - g[_G_CLKD] + noise_dopp
+                out[_O_DOPP, t] = range_rate + nlos_rate + clock[r, 1] - g[_G_CLKD] + noise_dopp
                 out[_O_CARR, t] = phase_m / GPS_L1_WAVELENGTH_M + a
                 out[_O_LOCK, t] = t_s - lock_start[r, prn]
                 out[_O_EL, t] = el
