@@ -164,6 +164,29 @@ def test_gnss_outage_height_aiding_on_and_off(tmp_path):
     assert [s.height_aiding for s in again.solutions] == [True, False]
 
 
+def test_height_aiding_uses_the_antenna_height_difference(tmp_path):
+    """A truck between two cars (antennas 3.9 m and 1.55 m above the road: the truck's is
+    2.35 m higher on this flat highway) through a 6 s GNSS outage, GPS+UWB+Bearing. The
+    height aiding's pseudo-measurement is "relative up = h_v - h_lead" (MacGougan (2009)
+    section 5's height constraint with the known installation heights), so the truck's
+    vertical error stays inside 3 sigma at every outage epoch, as a consistent filter's
+    must at the 99.7 % level (the error is 0.00 m measured). "Relative up = 0" would pass
+    the innovation test (2.35 m < 3.29 x 1 m) and force the truck down: -2.35 m at
+    sigma 0.44 m measured before."""
+    sc = load_scenario(None, [
+        'network.name="open_highway"', "clusters.0.vehicles=3", "duration_s=16.0",
+        'clusters.0.vehicle_type=["passenger", "truck", "passenger"]',
+        'faults=[{kind="gnss_outage", start_s=8.0, duration_s=6.0}]',
+        'solutions=[{name="GPS+UWB+Bearing", sensors=["gnss","uwb","bearing"]}]',
+    ])
+    run_scenario(sc, tmp_path / "r", quiet=True, replay=False)
+    ep = pd.read_parquet(tmp_path / "r" / "epochs.parquet")
+    truck = ep[(ep.vehicle == "c1.1") & (ep.t_s > 8.05) & (ep.t_s < 13.95)]
+    assert len(truck) > 50 and (truck.used_pr == 0).all()
+    assert truck.true_u_m.between(2.3, 2.4).all()  # 3.9 - 1.55 m on the flat road
+    assert (truck.up_err_m.abs() <= 3 * truck.sigma_up_m).all(), truck.up_err_m.abs().max()
+
+
 def test_height_aiding_sigma_none_means_off():
     """From Python, ``height_aiding_sigma_m=None`` (the filter's own "off") is the same as
     ``height_aiding=False``, and it survives the resolved-TOML round trip."""

@@ -132,8 +132,9 @@ def build_bearing(scenario: Scenario):
 
 
 def build_filter(sol: SolutionSection, lead: str, vehicles: Sequence[str], bearing_vehicles: Sequence[str],
-                 uwb_pairs: Sequence[tuple[str, str]]) -> ClusterEkf:
-    """The production EKF for one solution."""
+                 uwb_pairs: Sequence[tuple[str, str]], antenna_heights_m: dict[str, float] | None = None) -> ClusterEkf:
+    """The production EKF for one solution (``antenna_heights_m``: the vehicles' antenna
+    heights above the road, for the height aiding; ``FilterConfig.antenna_heights_m``)."""
     az = tuple(bearing_vehicles) if sol.azimuth == "estimated" else ()
     pairs = tuple(uwb_pairs) if sol.uwb_error_states else ()
     layout = StateLayout.build(lead=lead, vehicles=tuple(vehicles), azimuth_vehicles=az, uwb_pairs=pairs,
@@ -158,6 +159,7 @@ def build_filter(sol: SolutionSection, lead: str, vehicles: Sequence[str], beari
         significance=sol.significance,
         use_uwb_bias_scale=sol.uwb_error_states,
         height_aiding_sigma_m=sol.height_aiding_sigma,
+        antenna_heights_m=antenna_heights_m,
         phase=PhaseConfig(
             phase_sigma_m=sol.phase_sigma_m,
             elevation_mask_rad=float(np.radians(sol.phase_elevation_mask_deg)),

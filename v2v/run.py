@@ -353,9 +353,10 @@ def _run_scenario(scenario: Scenario, out_dir: Path, *, quiet: bool, replay: boo
                 bearing_vehicles = members if scenario.sensors.bearing.measuring == "all" else [
                     v for v in scenario.sensors.bearing.measuring if v in members]
                 uwb_pairs = _uwb_pairs(scenario, members)
+                antenna_heights = {v: h for v, h in sim.antenna_heights_m().items() if v in members}
                 runners, keys, parts = [], [], []
                 for si, sol in enumerate(scenario.solutions):
-                    ekf = build_filter(sol, lead, others, bearing_vehicles, uwb_pairs)
+                    ekf = build_filter(sol, lead, others, bearing_vehicles, uwb_pairs, antenna_heights)
                     runners.append(SolutionRunner(sol, ekf, lead, others, on_epoch=on_epoch))
                     keys.append(sol.name if len(scenario.clusters) == 1 else f"{cluster.name}/{sol.name}")
                     parts.append(parts_dir / f"epochs_{ci}_{si}.pkl")

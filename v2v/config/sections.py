@@ -100,7 +100,8 @@ class SolutionSection(_Model):
     velocity_tau_s: float = Field(default=2.0, gt=0.0)
     clock_drift_sigma_mps: float = Field(default=1000.0, gt=0.0)
     clock_drift_tau_s: float = Field(default=10.0, gt=0.0)
-    # "relative up = 0 +- sigma" in epochs without GNSS (cars on one locally flat road): UWB and
+    # "relative up = h_v - h_lead +- sigma" (antenna heights above the road, from the vehicle
+    # types' antenna_lever_arm_m) in epochs without GNSS (cars on one locally flat road): UWB and
     # bearings carry no height, and without it their geometry degrades within seconds of an outage.
     # height_aiding = false turns it off (TOML has no null; height_aiding_sigma_m = None given from
     # Python means the same and is stored as height_aiding = false).

@@ -81,7 +81,7 @@ import itertools
 import math
 from abc import ABC, abstractmethod
 from collections import Counter, deque
-from collections.abc import Iterable, Iterator, Sequence
+from collections.abc import Iterable, Iterator, Mapping, Sequence
 from dataclasses import dataclass, field
 from functools import partial
 from itertools import compress, repeat
@@ -178,9 +178,15 @@ class FilterConfig:
     phase : carrier-phase settings (:class:`v2v.estimation.phase.PhaseConfig`); None = the
         solution does not use carrier phase.
     height_aiding_sigma_m : when set, epochs without GNSS add a pseudo-measurement
-        "relative up = 0 +- sigma" per vehicle (cars on one locally flat road). UWB and
-        bearings carry no vertical information, so without it the relative height random-
-        walks (1 m/s GM: ~11 m after 30 s) and the range becomes too nonlinear to use.
+        "relative up = h_v - h_lead +- sigma" per vehicle (cars on one locally flat road;
+        ``h`` from ``antenna_heights_m``). UWB and bearings carry no vertical information,
+        so without it the relative height random-walks (1 m/s GM: ~11 m after 30 s) and the
+        range becomes too nonlinear to use.
+    antenna_heights_m : each vehicle's GNSS antenna height above the road (m), static
+        installation data a vehicle can broadcast; the relative up of two antennas on a flat
+        road is the difference (a truck's 3.9 m and a car's 1.55 m: 2.35 m, which "relative
+        up = 0" would force in: the innovation test passes offsets below ~3.3 sigma). None,
+        or a vehicle missing from it: no difference.
     """
 
     process: ProcessNoiseConfig = field(default_factory=ProcessNoiseConfig)
@@ -198,6 +204,7 @@ class FilterConfig:
     uninitialized_variance: float = 1e8
     nonlinear_fraction: float = 0.1
     height_aiding_sigma_m: float | None = None
+    antenna_heights_m: Mapping[str, float] | None = None
     clock_jump_detection: bool = True
     clock_reset_sigma_m: float = 100.0
     divergence_window: int = 50
@@ -1289,20 +1296,26 @@ class ClusterFilterBase(ABC):
         return pd
 
     def update_height_aiding(self, sigma_m: float, vehicles: list[str] | None = None) -> list[UpdateInfo]:
-        """Pseudo-measurement ``p_v,up = 0`` (variance sigma^2) for every initialized vehicle
-        (or those in ``vehicles``).
+        """Pseudo-measurement ``p_v,up = h_v - h_lead`` (variance sigma^2; the antennas'
+        heights above a locally flat road, ``FilterConfig.antenna_heights_m``) for every
+        initialized vehicle (or those in ``vehicles``); MacGougan (2009) section 5's height
+        constraint.
 
-        Tested like any measurement, so a real height difference (a ramp) is rejected
-        rather than forced in.
+        Tested like any measurement, so a large height difference (a steep ramp: beyond
+        ~3.3 sigma) is rejected rather than forced in; smaller ones are not.
         """
         lay = self.layout
+        heights = self.config.antenna_heights_m or {}
+        h_lead = heights.get(lay.lead)
         out = []
         for v in lay.vehicles:
             if not self._vehicle_ready[v] or (vehicles is not None and v not in vehicles):
                 continue
             i = lay.position(v).start + 2
             row = Row(float(self._get_x()[i]), np.array([i]), np.array([1.0]))
-            info = self._scalar(KIND_HEIGHT, (v,), row, 0.0, sigma_m**2)
+            h_v = heights.get(v)
+            z = h_v - h_lead if h_v is not None and h_lead is not None else 0.0
+            info = self._scalar(KIND_HEIGHT, (v,), row, z, sigma_m**2)
             if info is not None:
                 out.append(info)
         return out

@@ -514,6 +514,11 @@ class SumoSimulation:
     def cluster_vehicle_ids(self) -> list[str]:
         return list(self._meta)
 
+    def antenna_heights_m(self) -> dict[str, float]:
+        """Each cluster vehicle's antenna height above the road (the z of its vehicle type's
+        ``antenna_lever_arm_m``), metres."""
+        return {v: float(m.lever_arm_m[2]) for v, m in self._meta.items()}
+
     def lane_geometry(self) -> tuple[dict[str, np.ndarray], dict[str, float]]:
         """Centre-line polylines (net XY) and widths (m) of every non-internal lane."""
         tc = self._traci
