@@ -10,7 +10,9 @@ deviation sigma gives the white-noise spectral density ``q = 2 sigma^2 / tau``. 
 paper's values: tau_v = 2 s, sigma_v = 10 m/s horizontal, 1 m/s vertical; clock drift
 sigma_d = 1000 m/s, tau_d = 10 s. The clock bias integrates the drift (plus optional
 white noise, zero by default). UWB bias and UWB scale-factor states are random
-walks (MacGougan (2009) section 3.4.2, eq. 3.12-3.13): ``d/dt a = w_a``.
+walks (MacGougan (2009) section 3.4.2, eq. 3.12-3.13): ``d/dt a = w_a``, discretized as
+``Q = q dt`` (``q`` the spectral density; the thesis writes ``(q dt)^2``, which does not
+add up over sub-steps: two steps of dt/2 would give half the variance of one of dt).
 
 An estimated azimuth (paper section 5.3) is a random walk, or, when the layout gives it
 an azimuth-rate block, the integral of a first-order GM yaw rate plus a random walk::

@@ -14,9 +14,10 @@ Models
 * **Code multipath**: a unit-variance first-order Gauss-Markov process ``z`` per
   (receiver, satellite), ``z_{k+1} = exp(-dt/tau) z_k + sqrt(1 - exp(-2 dt/tau)) w_k``,
   scaled by ``sigma(E) = a + b exp(-E/E0)`` (the elevation model of Euler & Goad 1991,
-  as used e.g. by RTKLIB/Jin et al.). Correlation time 10-30 s for a moving antenna:
-  the multipath phase rotates as the reflector geometry changes (Misra & Enge 2011
-  §6.2; MacGougan 2009 fig. 5.24 shows code multipath oscillating over tens of s).
+  as used e.g. by RTKLIB/Jin et al.). Correlation time 5 s for a moving antenna (the
+  DLL averages the fast fading; what is left changes as the car passes its reflectors:
+  :class:`MultipathConfig`); a static antenna's multipath oscillates over tens of s to
+  minutes (MacGougan 2009 fig. 5.24).
   Carrier multipath: an independent process of the same kind, ``phase_multipath_ratio``
   times smaller (mm level, bounded by lambda/4 in theory).
 * **Code thermal noise** (DLL, non-coherent early-minus-late power discriminator,
@@ -128,8 +129,9 @@ class TrackingConfig:
     cn0_zenith_dbhz, cn0_horizon_dbhz : float
         C/N0 of an unobstructed signal at 90 deg and 0 deg elevation.
     foliage_enabled : bool
-        Apply the canopy loss (the world's per-area dB/m, ~1 dB/m in leaf at L1: Goldhirsh
-        & Vogel 1998, ITU-R P.833, times the slant path), capped at ``foliage_max_db``.
+        Apply the canopy loss (the world's per-area dB/m, default 0.5 dB/m: Weissberger's
+        0.51 dB/m at L1 for paths up to 14 m; ~1 dB/m in dense leaf, Goldhirsh & Vogel 1998,
+        ITU-R P.833; times the slant path), capped at ``foliage_max_db``.
     nlos_enabled : bool
         False: echo-only signals are not tracked (only clean LOS signals).
     echo_loss_db : float
@@ -192,14 +194,13 @@ class GnssErrorConfig:
     across (std, tables 3-4) with NovAtel OEM4 receivers. Everything common to receivers
     tens of metres apart (clock of the satellite, orbit, ionosphere, troposphere) cancels
     in single differences to < 1 mm here; what is left is receiver clock (estimated),
-    multipath and noise. With the defaults, at 30-60 deg elevation, one receiver's
-    code error is ``sqrt(0.22^2 + 0.21^2) ~ 0.3 m`` (multipath + DLL noise at ~46 dB-Hz),
-    a single difference ~0.43 m. Measured (two cars 30 m apart at 14 m/s, 10 Hz, 300 s,
-    2021-04-28 broadcast ephemeris, 9-10 satellites, snapshot SD least squares, three
-    start hours): snapshot std 0.36-0.43 m east, 0.42-0.67 m north; the same errors averaged
-    over 20 s: 0.18-0.21 / 0.20-0.36 m; over 60 s: 0.10-0.15 / 0.11-0.25 m. Multipath
-    decorrelates in 20 s and noise in 0.5 s, so a Doppler-aided filter with a memory of
-    tens of seconds lands in the paper's 0.1-0.2 m (tables 3-4).
+    multipath and noise. With the defaults, at 30-60 deg elevation, one receiver's code
+    error is ``sqrt(0.15..0.18^2 + 0.21^2) ~ 0.27 m`` (multipath, :func:`multipath_sigma_m`,
+    + DLL noise at ~46 dB-Hz), a single difference ~0.38 m. Multipath decorrelates in 5 s
+    and noise in 0.5 s, so a Doppler-aided filter with a memory of tens of seconds averages
+    them down to the paper's 0.1-0.2 m (tables 3-4); what the defaults give is in
+    :class:`MultipathConfig` ("What it gives"). (An earlier measurement of snapshot SD
+    errors, 0.36-0.67 m, was made with the former 0.22 m / 20 s multipath.)
     """
 
     clock: ClockConfig = field(default_factory=ClockConfig)
