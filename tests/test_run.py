@@ -9,6 +9,7 @@ import pandas as pd
 import pytest
 
 from v2v.config.scenario import load_scenario
+from v2v.errors import UserError
 from v2v.frames import ecef_to_enu, enu_to_lead_frame
 from v2v.run import run_scenario
 
@@ -185,6 +186,28 @@ def test_height_aiding_uses_the_antenna_height_difference(tmp_path):
     assert len(truck) > 50 and (truck.used_pr == 0).all()
     assert truck.true_u_m.between(2.3, 2.4).all()  # 3.9 - 1.55 m on the flat road
     assert (truck.up_err_m.abs() <= 3 * truck.sigma_up_m).all(), truck.up_err_m.abs().max()
+
+
+def test_uwb_constraints_from_the_scenario(tmp_path):
+    """``uwb_constraints = true`` switches on the thesis's inequality constraints (eq. 3.19-3.22)
+    of the UWB bias / scale states. Bounds tighter than the world's pair biases (+-1 cm
+    here; the built-in radios' fixed and oscillator biases are decimetres) must be hit, so
+    pulls onto them appear as ``uwb_constraint`` updates, without a NIS (not measurements);
+    the same solution without constraints has none. Constraints without error states are
+    refused with the field named."""
+    common = 'sensors=["gnss","uwb"], uwb_error_states=true'
+    sc = load_scenario(None, [
+        'network.name="open_highway"', "clusters.0.vehicles=3", "duration_s=15.0",
+        f'solutions=[{{name="free", {common}}}, {{name="bounded", {common}, uwb_constraints=true,'
+        ' uwb_bias_bounds_m=[-0.01, 0.01]}]',
+    ])
+    res = run_scenario(sc, tmp_path / "r", quiet=True, replay=False)
+    meas = res.summary["statistics"]
+    assert "uwb_constraint" not in meas["free"]["measurements"]
+    pulls = meas["bounded"]["measurements"]["uwb_constraint"]
+    assert pulls["used"] > 0 and np.isnan(pulls["nis_mean_clean"])
+    with pytest.raises(UserError, match="uwb_error_states"):
+        load_scenario(None, ['solutions=[{name="x", sensors=["gnss","uwb"], uwb_constraints=true}]'])
 
 
 def test_height_aiding_sigma_none_means_off():

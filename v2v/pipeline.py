@@ -24,6 +24,7 @@ from v2v.config.sections import SolutionSection
 from v2v.errors import UserError
 from v2v.estimation.filter import (
     KIND_BEARING,
+    KIND_CONSTRAINT,
     KIND_SD_PR,
     KIND_SD_PR_PAIR,
     KIND_UWB,
@@ -158,6 +159,8 @@ def build_filter(sol: SolutionSection, lead: str, vehicles: Sequence[str], beari
         ),
         significance=sol.significance,
         use_uwb_bias_scale=sol.uwb_error_states,
+        uwb_bias_bounds_m=tuple(sol.uwb_bias_bounds_m) if sol.uwb_constraints else None,
+        uwb_scale_bounds=tuple(sol.uwb_scale_bounds) if sol.uwb_constraints else None,
         height_aiding_sigma_m=sol.height_aiding_sigma,
         antenna_heights_m=antenna_heights_m,
         phase=PhaseConfig(
@@ -513,6 +516,8 @@ class UpdateLog:
                 faulty.append(cols["faulty"][m])
                 nis.append(cols["nis"][m])
             out[kind] = update_kind_statistics(np.concatenate(acc), np.concatenate(faulty), np.concatenate(nis))
+            if kind == KIND_CONSTRAINT:  # a pull onto a bound (thesis eq. 3.19-3.22), not a measurement: no NIS
+                out[kind]["nis_mean_clean"] = out[kind]["nis_frac_in_band_clean"] = float("nan")
         return out
 
     def _chunks(self, pickle: Any):

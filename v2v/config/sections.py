@@ -90,6 +90,13 @@ class SolutionSection(_Model):
     sensors: list[str] = Field(min_length=1)
     azimuth: Literal["known", "estimated"] = "known"
     uwb_error_states: bool = False
+    # MacGougan (2009) eq. 3.19-3.22: after each UWB update a bias or scale state beyond its
+    # known range is pulled onto the bound by a pseudo-measurement (uwb_error_states only).
+    # Bias: +-1.23 m, the worst case of 20 ppm oscillators (IEEE 802.15.4a; thesis 3.4.3);
+    # scale: 0-5000 ppm covers both built-in radios' line-of-sight walk (2300-4700 ppm, 2.11.1).
+    uwb_constraints: bool = False
+    uwb_bias_bounds_m: tuple[float, float] = (-1.23, 1.23)
+    uwb_scale_bounds: tuple[float, float] = (0.0, 0.005)
     pseudorange_sigma_m: float = Field(default=5.0, gt=0.0)
     doppler_sigma_mps: float = Field(default=0.1, gt=0.0)
     uwb_sigma_m: float = Field(default=0.5, gt=0.0)
@@ -153,6 +160,12 @@ class SolutionSection(_Model):
             raise ValueError("azimuth = 'estimated' needs the 'bearing' sensor in this solution")
         if self.uwb_error_states and "uwb" not in self.sensors:
             raise ValueError("uwb_error_states needs the 'uwb' sensor in this solution")
+        if self.uwb_constraints and not self.uwb_error_states:
+            raise ValueError("uwb_constraints bound the UWB bias / scale states: set uwb_error_states = true too")
+        for name in ("uwb_bias_bounds_m", "uwb_scale_bounds"):
+            lo, hi = getattr(self, name)
+            if not lo < hi:
+                raise ValueError(f"{name} needs [min, max] with min < max, got [{lo}, {hi}]")
         return self
 
 
