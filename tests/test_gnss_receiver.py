@@ -535,6 +535,45 @@ def test_echo_doppler_follows_the_reflected_path(eph):
     assert np.all(np.abs(echo_rate[nl]) > 1.0)  # the term is metres per second, not a rounding
 
 
+def test_carrier_arcs_are_continuous_through_echo_changes(eph):
+    """A tracked carrier arc (one integer ambiguity) must be continuous: its phase advances by
+    the integral of the Doppler, ``lambda dPhi = (D1 + D2) dt / 2`` to within a phase-lock
+    loop's pull-in (lambda / 4, 4.8 cm). The car drives 60 m east past two north-side blocks
+    15 m and 25 m from the road (the southern sky blocked): an echo-only satellite's
+    reflection moves from one wall to the other, and its path jumps by metres. That must
+    start a new arc (a receiver loses lock), as a LOS <-> echo switch does. Error-free
+    receiver with echoes; the trapezoid's own error is ~1e-4 m at 10 Hz."""
+    from v2v.world.occlusion import OcclusionGeometry
+
+    blocks = (Building(id="south", footprint_xy_m=np.array([[-300, -40], [300, -40], [300, -10], [-300, -10.0]]),
+                       height_m=12.0, height_source="height"),
+              Building(id="near", footprint_xy_m=np.array([[-300, 15], [0, 15], [0, 45], [-300, 45.0]]),
+                       height_m=60.0, height_source="height"),
+              Building(id="far", footprint_xy_m=np.array([[0, 25], [300, 25], [300, 55], [0, 55.0]]),
+                       height_m=60.0, height_source="height"))
+    occ = OcclusionGeometry(World(buildings=blocks))
+    err = replace(GnssErrorConfig.ideal(), tracking=TrackingConfig(noise_enabled=False, foliage_enabled=False))
+    v_e, n_ep = 10.0, 61
+    n_switch = 0
+    for t0 in np.arange(0.0, 4 * 3600.0, 900.0):
+        syn = synth(eph, err, occlusion=occ, georef=GEO)
+        eps = [syn.epoch(t, {"a": vstate("a", t, -30.0 - v_e * t0, 0.0, vel_enu=(v_e, 0.0, 0.0))})["a"]
+               for t in t0 + 0.1 * np.arange(n_ep)]
+        for p in sorted(set(np.concatenate([e.prn for e in eps]).tolist())):
+            for e1, e2 in zip(eps[:-1], eps[1:], strict=True):
+                if p not in e1.prn or p not in e2.prn:
+                    continue
+                i1, i2 = int(np.flatnonzero(e1.prn == p)[0]), int(np.flatnonzero(e2.prn == p)[0])
+                if e1.ambiguity_cycles[i1] != e2.ambiguity_cycles[i2] or e2.lock_time_s[i2] < 0.05:
+                    n_switch += int(not e1.los[i1] and not e2.los[i2])  # a new arc between two echoes
+                    continue
+                jump = GPS_L1_WAVELENGTH_M * (e2.carrier_cycles[i2] - e1.carrier_cycles[i1]) \
+                    - 0.5 * (e1.doppler_mps[i1] + e2.doppler_mps[i2]) * (e2.t_s - e1.t_s)
+                assert abs(jump) < GPS_L1_WAVELENGTH_M / 4, (t0, p, e2.t_s, jump)
+    print("new arcs between two echoes (a reflection moved to the other wall):", n_switch)
+    assert n_switch > 0
+
+
 def test_no_gnss_epoch_is_clean(eph):
     """Everything blocked without echoes: an n = 0 epoch, no NaN, no exception."""
 

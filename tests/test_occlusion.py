@@ -508,7 +508,7 @@ def test_sky_agrees_with_brute_force_reference_and_both_screening_paths():
     r_idx = g_index.sky_many(ants, ai, az, el, max_d)
     r_dense = g_dense.sky_many(ants, ai, az, el, max_d)
     assert r.blocked.any() and np.isfinite(r.echo_excess_m).any()
-    for f in ("blocked", "blocker_id", "echo_excess_m", "echo_gradient_xy"):
+    for f in ("blocked", "blocker_id", "echo_excess_m", "echo_gradient_xy", "echo_wall"):
         np.testing.assert_array_equal(getattr(r, f), getattr(r_idx, f))
         np.testing.assert_array_equal(getattr(r, f), getattr(r_dense, f))
     # The gradient is that of the excess: a central difference over +-1 mm of antenna motion

@@ -104,7 +104,9 @@ class SkyResult:
     antenna height), so the echo's path rate is ``echo_gradient_xy . v_xy`` for an antenna
     moving at ``v_xy`` (the satellite's motion adds ``2 d_w (ds/dt . n)``, ~1e-4 rad/s times
     the wall distance: mm/s, left out). NaN where ``echo_excess_m`` is; ``None`` from
-    objects that do not compute it (then taken as zero).
+    objects that do not compute it (then taken as zero). ``echo_wall`` is the index of the
+    reflecting wall (-1 where there is no echo): an echo that moves to another wall jumps in
+    path length, which a receiver's phase lock does not follow (a new carrier arc).
     """
 
     blocked: NDArray[np.bool_]
@@ -113,6 +115,7 @@ class SkyResult:
     foliage_loss_db: FloatArray
     echo_excess_m: FloatArray
     echo_gradient_xy: FloatArray | None = None
+    echo_wall: NDArray[np.int64] | None = None
 
 
 @dataclass(frozen=True, kw_only=True)
@@ -804,8 +807,9 @@ class OcclusionGeometry:
 
         echo = np.full(n, np.nan)
         grad = np.full((n, 2), np.nan)
+        wall = np.full(n, -1, dtype=np.int64)
         if blocked.any() and self._w_len.size:
-            echo, grad = self._sky_echo(ants, ai, az, el_c, blocked, max_dist_m)
+            echo, grad, wall = self._sky_echo(ants, ai, az, el_c, blocked, max_dist_m)
         return SkyResult(
             blocked=blocked,
             blocker_id=blocker_id.astype(str),
@@ -813,6 +817,7 @@ class OcclusionGeometry:
             foliage_loss_db=foliage_loss_db,
             echo_excess_m=echo,
             echo_gradient_xy=grad,
+            echo_wall=wall,
         )
 
     def _foliage_horizontal(
@@ -873,9 +878,10 @@ class OcclusionGeometry:
         el: FloatArray,
         blocked: NDArray[np.bool_],
         max_dist_m: float,
-    ) -> tuple[FloatArray, FloatArray]:
+    ) -> tuple[FloatArray, FloatArray, NDArray[np.int64]]:
         """Shortest valid wall-echo excess of each blocked ray (ray ``i`` starts at
-        ``ants[ai[i]]``) and its gradient with respect to the antenna's XY (:class:`SkyResult`).
+        ``ants[ai[i]]``), its gradient with respect to the antenna's XY and its wall
+        (:class:`SkyResult`).
 
         Every (blocked ray, wall) pair is tested exactly (compiled kernel; the module
         docstring's conditions), then the candidates' legs are checked best-first
@@ -896,8 +902,9 @@ class OcclusionGeometry:
         )
         out = np.full(n, np.nan)
         grad = np.full((n, 2), np.nan)
+        wall = np.full(n, -1, dtype=np.int64)
         if ri.size == 0:
-            return out, grad
+            return out, grad, wall
         # _legs_clear(a, r, b) checks a->r and r->b: antenna -> R, then R -> far.
         out[rays], which = self._best_reflection(ri, excess, xr[ri], r3, far, rays.size)
         got = which >= 0
@@ -905,7 +912,8 @@ class OcclusionGeometry:
         nx, ny = self._w_nx[w], self._w_ny[w]
         c2 = 2.0 * (s_hx[k] * nx + s_hy[k] * ny)  # 2 (s . n), c as the kernel computes it
         grad[rays[got], 0], grad[rays[got], 1] = c2 * nx, c2 * ny
-        return out, grad
+        wall[rays[got]] = w
+        return out, grad, wall
 
     def _sky_echo_vectorized(
         self,
@@ -915,7 +923,7 @@ class OcclusionGeometry:
         el: FloatArray,
         blocked: NDArray[np.bool_],
         max_dist_m: float,
-    ) -> tuple[FloatArray, FloatArray]:
+    ) -> tuple[FloatArray, FloatArray, NDArray[np.int64]]:
         """:meth:`_sky_echo` with numpy and the spatial index (reference implementation).
 
         Candidate walls are screened per antenna first (antenna in front of the wall, wall
@@ -981,7 +989,7 @@ class OcclusionGeometry:
         ri = ray_pair
         wi = wj[pair]
         if wi.size == 0:
-            return np.full(n, np.nan), np.full((n, 2), np.nan)
+            return np.full(n, np.nan), np.full((n, 2), np.nan), np.full(n, -1, dtype=np.int64)
         s_hx, s_hy = ce * np.sin(az[rays]), ce * np.cos(az[rays])
         nx, ny = self._w_nx[wi], self._w_ny[wi]
         c = s_hx[ri] * nx + s_hy[ri] * ny  # s . n
@@ -1000,7 +1008,7 @@ class OcclusionGeometry:
         nx, ny = nx[ok], ny[ok]
         z_r = xr[ri, 2] + tau * se[ri]
         ok = (z_r < self._w_h[wi]) & (tau * ce[ri] <= max_dist_m)
-        ri, c, dw, z_r, nx, ny = ri[ok], c[ok], dw[ok], z_r[ok], nx[ok], ny[ok]
+        ri, wi, c, dw, z_r, nx, ny = ri[ok], wi[ok], c[ok], dw[ok], z_r[ok], nx[ok], ny[ok]
         r_h = np.column_stack([rx[ok], ry[ok]])
         s_h = np.column_stack([s_hx, s_hy])  # (r, 2)
         excess = 2.0 * dw * c
@@ -1014,10 +1022,12 @@ class OcclusionGeometry:
         out = np.full(n, np.nan)
         out[rays] = best
         grad = np.full((n, 2), np.nan)
+        wall = np.full(n, -1, dtype=np.int64)
         got = which >= 0
         c2 = 2.0 * c[which[got]]
         grad[rays[got], 0], grad[rays[got], 1] = c2 * nx[which[got]], c2 * ny[which[got]]
-        return out, grad
+        wall[rays[got]] = wi[which[got]]
+        return out, grad, wall
 
     # ------------------------------------------------------------------ links
     def links(

@@ -194,6 +194,7 @@ class _TrackingStates:
             "ambiguity": np.zeros((rows, n), dtype=np.int64),
             "lock_start": np.zeros((rows, n)),
             "los": np.ones((rows, n), dtype=bool),
+            "echo_wall": np.full((rows, n), -1, dtype=np.int64),  # reflecting wall of an echo-only signal
             "clock": np.zeros((rows, 2)),  # receiver clock (bias m, drift m/s)
             "clock_t": np.zeros(rows),  # time of that clock state
             # Pre-drawn random numbers per (stream, receiver row) and the next unused index.
@@ -530,6 +531,9 @@ class GnssSynthesizer:
             sky_cols = [np.concatenate([np.asarray(getattr(r, a)) for r in res]) if len(res) > 1 else np.asarray(getattr(res[0], a))
                         for a in ("blocked", "echo_excess_m", "foliage_loss_db")]
             grads = [getattr(r, "echo_gradient_xy", None) for r in res]
+            walls = [getattr(r, "echo_wall", None) for r in res]
+            echo_wall = (np.concatenate(walls) if len(walls) > 1 else np.asarray(walls[0])).astype(np.int64) \
+                if all(w is not None for w in walls) else np.full(geom.shape[0], -1, dtype=np.int64)
             echo_rate = np.zeros(geom.shape[0])
             if all(g is not None for g in grads):
                 grad = np.concatenate(grads) if len(grads) > 1 else np.asarray(grads[0])
@@ -539,7 +543,7 @@ class GnssSynthesizer:
                 v_e, v_n = np.repeat(vec[:, 0], k_row), np.repeat(vec[:, 1], k_row)
                 rate = grad[:, 0] * (v_e * cg - v_n * sg) + grad[:, 1] * (v_e * sg + v_n * cg)
                 echo_rate = np.where(np.isfinite(rate), rate, 0.0)
-            sky = (*sky_cols, echo_rate)
+            sky = (*sky_cols, echo_rate, echo_wall)
         return self._measure(layout, ids_e, rcvs_e, rows_e, cand, geom, vel, sky, due)
 
     def _new_receiver(self, vid: str, t_s: float) -> GnssReceiver:
@@ -627,9 +631,10 @@ class GnssSynthesizer:
             echo = np.full(n_pairs, np.nan)
             foliage_db = np.zeros(n_pairs)
             echo_rate = np.zeros(n_pairs)
+            echo_wall = np.full(n_pairs, -1, dtype=np.int64)
         else:
-            blocked, echo, foliage_db, echo_rate = (np.asarray(a, dtype=d) for a, d in
-                                                    zip(sky, (bool, float, float, float), strict=True))
+            blocked, echo, foliage_db, echo_rate, echo_wall = (
+                np.asarray(a, dtype=d) for a, d in zip(sky, (bool, float, float, float, np.int64), strict=True))
         rows = np.concatenate(rows_e) if len(rows_e) > 1 else rows_e[0]
         k_e = np.diff(layout.pair_off) // np.diff(layout.row_off)
         slips = trk.random_slip_rate_hz > 0.0
@@ -659,13 +664,13 @@ class GnssSynthesizer:
         mpc = err.multipath
         _measure_kernel(
             layout.t_ep, layout.row_off, layout.pair_off, layout.ep_cand, layout.cand_off, geom, blocked, echo,
-            echo_rate, foliage_db, rows, cand, vel, dt_clk, fac, ccfg.enabled, thr, st.clock_t, jumps, cfg.elevation_mask_rad,
+            echo_rate, echo_wall, foliage_db, rows, cand, vel, dt_clk, fac, ccfg.enabled, thr, st.clock_t, jumps, cfg.elevation_mask_rad,
             trk.cn0_zenith_dbhz, trk.cn0_horizon_dbhz, trk.foliage_enabled, trk.foliage_max_db, trk.nlos_enabled,
             trk.echo_loss_db, trk.track_threshold_dbhz, self._dt_epoch, trk.random_slip_rate_hz, mp_on, mpc.tau_s,
             mpc.sigma_a_m, mpc.sigma_b_m, mpc.el0_rad, mpc.phase_multipath_ratio, noise_on, trk.dll_correlation_time_s,
             trk.dll_spacing_chips, trk.dll_bandwidth_hz, trk.predetection_s, trk.pll_bandwidth_hz,
             trk.doppler_sigma_mps_at_45dbhz, st.clock, st.z_mp, st.z_mp_phase, st.z_noise, st.ambiguity,
-            trk.ambiguity_max_cycles, st.lock_start, st.los, st.last_t, st.draws, st.draw_pos, prn, out_f, sv_pos,
+            trk.ambiguity_max_cycles, st.lock_start, st.los, st.echo_wall, st.last_t, st.draws, st.draw_pos, prn, out_f, sv_pos,
             sv_vel, amb, los, off,
         )
 
@@ -988,18 +993,19 @@ def _clock_steps_kernel(t_ep, row_off, rows, clock_t):  # pragma: no cover - com
 
 @njit(**_JIT)
 def _measure_kernel(
-    t_ep, row_off, pair_off, ep_cand, cand_off, geom, blocked, echo, echo_rate, foliage_db, rows, cand_all, vel, dt_clk, fac,
+    t_ep, row_off, pair_off, ep_cand, cand_off, geom, blocked, echo, echo_rate, echo_wall, foliage_db, rows, cand_all, vel, dt_clk, fac,
     clk_on, jump_thr_m, clock_t, jumps, mask_rad, cn0_zen, cn0_hor, foliage_on, foliage_max,
     nlos_on, echo_loss, threshold, dt_epoch, slip_rate, mp_on, mp_tau, mp_a, mp_b, mp_el0, mp_phase_ratio, noise_on,
     dll_tau, dll_d, dll_bl, t_pre, pll_bn, dopp45, clock, z_mp, z_mpp, z_noise, ambiguity, amb_max, lock_start,
-    los_state, last_t, draws, draw_pos, prn_out, out, sv_pos, sv_vel, amb, los, off,
+    los_state, wall_state, last_t, draws, draw_pos, prn_out, out, sv_pos, sv_vel, amb, los, off,
 ):  # pragma: no cover - compiled
     """Tracking, error processes and observables of every receiver (module docstring; errors.py models).
 
     Per vehicle: the tracked candidates (PRNs ascending) are those above the mask, not blocked
     or received as an echo, with C/N0 (:func:`~v2v.sensors.gnss.errors.cn0_dbhz`) above the
-    tracking threshold. A gap (missed epoch), a LOS <-> echo switch or a random slip starts a
-    new arc with a new integer ambiguity. Multipath (code, carrier) and DLL noise are unit
+    tracking threshold. A gap (missed epoch), a LOS <-> echo switch, an echo moving to another
+    reflecting wall (``echo_wall``: its path jumps by metres) or a random slip starts a new arc
+    with a new integer ambiguity. Multipath (code, carrier) and DLL noise are unit
     Gauss-Markov states stepped exactly (errors.gauss_markov_step: ``z <- phi z + sqrt(1 -
     phi^2) w``, ``phi = exp(-dt / tau)``); noise sigmas are errors.dll_jitter_m, pll_jitter_m
     and doppler_sigma_mps. Epochs are processed in order (``t_ep``, _ChunkLayout), each first
@@ -1046,7 +1052,9 @@ def _measure_kernel(
                 g = geom[g0 + j]
                 nlos = not los[t]
                 gap = t_s - last_t[r, prn]
-                new_arc = (gap > 1.5 * dt_epoch) or (los_state[r, prn] != los[t])
+                wall = echo_wall[g0 + j] if nlos else -1
+                # a gap, a LOS <-> echo switch, or an echo moving to another wall (its path jumps)
+                new_arc = (gap > 1.5 * dt_epoch) or (los_state[r, prn] != los[t]) or (wall_state[r, prn] != wall)
                 if slip_rate > 0.0:
                     p_slip = 1.0 - np.exp(-slip_rate * min(gap, dt_epoch))
                     new_arc = (draws[_S_SLIP, r, p_sl] < p_slip) or new_arc
@@ -1059,6 +1067,7 @@ def _measure_kernel(
                     p_am += 1
                     lock_start[r, prn] = t_s
                 los_state[r, prn] = los[t]
+                wall_state[r, prn] = wall
                 dt = gap if np.isfinite(gap) else np.inf
                 el = g[_G_EL]
                 cn0 = out[_O_CN0, t]
