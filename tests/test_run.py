@@ -210,6 +210,28 @@ def test_uwb_constraints_from_the_scenario(tmp_path):
         load_scenario(None, ['solutions=[{name="x", sensors=["gnss","uwb"], uwb_constraints=true}]'])
 
 
+def test_gnss_min_satellites_leaves_weak_gnss_out(tmp_path):
+    """``gnss_min_satellites``: a vehicle with fewer satellites in common with the lead leaves
+    its GNSS out of the epoch, as in an outage. With the threshold above any sky (40) every
+    follower is initialized from its first epochs (initialization is not affected) and then
+    uses no pseudorange, counted per vehicle-epoch, while height aiding bounds its vertical
+    (sigma_up <= 1 m + 1 m/s x 0.1 s, the outage test's bound) and UWB and bearings carry the
+    horizontal (every epoch has an estimate). The same solution with 0 uses them."""
+    sc = load_scenario(None, [
+        'network.name="open_highway"', "clusters.0.vehicles=3", "duration_s=8.0",
+        'solutions=[{name="all", sensors=["gnss","uwb","bearing"]},'
+        ' {name="none", sensors=["gnss","uwb","bearing"], gnss_min_satellites=40}]',
+    ])
+    res = run_scenario(sc, tmp_path / "r", quiet=True, replay=False)
+    ep = pd.read_parquet(tmp_path / "r" / "epochs.parquet")
+    late = ep[ep.t_s > 1.0]
+    none, every = (late[late.solution == s] for s in ("none", "all"))
+    assert (none.used_pr == 0).all() and (every.used_pr >= 4).all()
+    assert none.initialized.all() and none.sigma_up_m.max() <= 1.1
+    assert res.summary["filter_counters"]["none"]["gnss_too_few_satellites"] >= 2 * 70  # 2 followers, 10 Hz
+    assert "gnss_too_few_satellites" not in res.summary["filter_counters"]["all"]
+
+
 def test_height_aiding_sigma_none_means_off():
     """From Python, ``height_aiding_sigma_m=None`` (the filter's own "off") is the same as
     ``height_aiding=False``, and it survives the resolved-TOML round trip."""

@@ -114,6 +114,10 @@ class SolutionSection(_Model):
     # Python means the same and is stored as height_aiding = false).
     height_aiding: bool = True
     height_aiding_sigma_m: float = Field(default=1.0, gt=0.0)
+    # A vehicle with fewer satellites in common with the lead than this leaves its GNSS out of
+    # the epoch (as in an outage: height aiding, UWB and bearings carry it). 0: use every SD
+    # (the paper's filter). 4 in a deep canyon: see the README's carrier-phase section.
+    gnss_min_satellites: int = Field(default=0, ge=0)
     # Estimated-azimuth process model (azimuth = "estimated" only): azimuth = integral of a
     # first-order Gauss-Markov yaw rate (sigma, tau) plus a random walk. yaw_rate_sigma_deg_s = 0
     # drops the yaw-rate state (pure random walk). See v2v.estimation.process.

@@ -182,6 +182,12 @@ class FilterConfig:
         ``h`` from ``antenna_heights_m``). UWB and bearings carry no vertical information,
         so without it the relative height random-walks (1 m/s GM: ~11 m after 30 s) and the
         range becomes too nonlinear to use.
+    gnss_min_satellites : a vehicle with fewer satellites in common with the lead leaves its
+        GNSS (SD pseudoranges, pair SDs, Dopplers) out of that epoch, like an outage (height
+        aiding, UWB and bearings carry it; counted ``gnss_too_few_satellites``). With 2-3
+        satellites, mostly echoes, the innovation test cannot single out the bad ones (no
+        redundancy) and they pull the solution off. 0 (default): every SD is used, as in the
+        paper's filter.
     antenna_heights_m : each vehicle's GNSS antenna height above the road (m), static
         installation data a vehicle can broadcast; the relative up of two antennas on a flat
         road is the difference (a truck's 3.9 m and a car's 1.55 m: 2.35 m, which "relative
@@ -205,6 +211,7 @@ class FilterConfig:
     nonlinear_fraction: float = 0.1
     height_aiding_sigma_m: float | None = None
     antenna_heights_m: Mapping[str, float] | None = None
+    gnss_min_satellites: int = 0
     clock_jump_detection: bool = True
     clock_reset_sigma_m: float = 100.0
     divergence_window: int = 50
@@ -556,6 +563,7 @@ class ClusterFilterBase(ABC):
             for v in compress(ready, (sig > self.config.divergence_position_sigma_m).tolist()):
                 self._reset_vehicle(v)
         per_vehicle: dict[str, tuple[GnssEpoch, NDArray, NDArray, F64]] = {}
+        skipped: set[str] = set()  # ready vehicles with fewer common satellites than gnss_min_satellites
         pr_jobs: list[tuple[str, GnssEpoch, NDArray, NDArray]] = []  # ready vehicles: (v, epoch, iv, il)
         if lead_ep is not None:
             lead_prn = np.asarray(lead_ep.prn, dtype=np.int64)
@@ -582,6 +590,10 @@ class ClusterFilterBase(ABC):
                 if self._initialize_vehicle(v, geo, ep, lead_ep, iv, il):
                     just_initialized.add(v)
                 continue
+            if len(iv) < self.config.gnss_min_satellites:
+                skipped.add(v)  # too few to screen: its GNSS is left out of this epoch
+                self._count("gnss_too_few_satellites")
+                continue
             pr_jobs.append((v, ep, iv, il))
         # (an initialization sets a block uncorrelated with the others, and a divergence reset
         # erases one: neither changes another vehicle's update, so they may come first / last)
@@ -591,10 +603,11 @@ class ClusterFilterBase(ABC):
             if self._window_diverged(v):
                 self._reset_vehicle(v)  # re-initialized by the next epoch's snapshot
         if self.config.use_pair_sd:
-            infos += self._pair_sds(epochs, lead_ep, geo)
+            infos += self._pair_sds({v: e for v, e in epochs.items() if v not in skipped} if skipped else epochs,
+                                    lead_ep, geo)
         if self.config.use_doppler and lead_ep is not None:
             jobs = [(v, ep, iv, il) for v, (ep, iv, il, _) in per_vehicle.items()
-                    if self._vehicle_ready[v] and v not in just_initialized]
+                    if self._vehicle_ready[v] and v not in just_initialized and v not in skipped]
             if jobs:
                 infos += self._sd_dopplers_all(geo, lead_ep, jobs)
         code_ok: dict[str, set[int]] = {}  # accepted SD pseudoranges: only the carrier phase uses them
@@ -607,7 +620,7 @@ class ClusterFilterBase(ABC):
         # (2009) section 5: "a height constraint was employed when fewer than 4 GPS satellites
         # were available"); UWB and bearings are then no longer deferred for nonlinearity
         # (:meth:`_nonlinear_fraction`).
-        self.gnss_weak = {v: v not in per_vehicle or len(per_vehicle[v][1]) < 4 for v in lay.vehicles}
+        self.gnss_weak = {v: v not in per_vehicle or len(per_vehicle[v][1]) < 4 or v in skipped for v in lay.vehicles}
         if self.config.height_aiding_sigma_m is not None:
             weak = [v for v in lay.vehicles if self.gnss_weak[v] and v not in just_initialized]
             if weak:
