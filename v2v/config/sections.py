@@ -6,7 +6,7 @@ in :mod:`v2v.pipeline` turn them into the sensor and filter parameter objects.
 
 from __future__ import annotations
 
-from typing import Literal
+from typing import Any, Literal
 
 from pydantic import BaseModel, ConfigDict, Field, field_validator, model_validator
 
@@ -190,7 +190,7 @@ def phase_solutions() -> list[SolutionSection]:
     """The carrier-phase solutions (issue 9; MacGougan (2009) ch. 4: GPS vs tightly-coupled
     GPS+UWB RTK). Code sigma 1 m; UWB with bias and scale states (thesis ch. 4: observable
     with a range of motion, needed below 10 cm, paper section 5.4)."""
-    common = {"carrier_phase": True, "pseudorange_sigma_m": 1.0}
+    common: dict[str, Any] = {"carrier_phase": True, "pseudorange_sigma_m": 1.0}
     return [
         SolutionSection(name="GPS-phase", sensors=["gnss"], **common),
         SolutionSection(name="GPS-phase+UWB", sensors=["gnss", "uwb"], uwb_error_states=True, **common),

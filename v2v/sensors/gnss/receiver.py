@@ -179,6 +179,8 @@ class GnssReceiver:
 class _TrackingStates:
     """Per (receiver row, PRN slot) tracking states and per-row clocks of all receivers, grown on demand."""
 
+    echo_wall: NDArray[np.int64]  # (the arrays are set by _grow)
+
     def __init__(self, rows: int = 8):
         self.cap = 0
         self.block = _DRAW_BLOCK  # length of each pre-drawn block (grows for long batches)
@@ -530,8 +532,8 @@ class GnssSynthesizer:
                 res = [self.occlusion.sky(xyz[i], az_grid[po[i]:po[i + 1]], el[po[i]:po[i + 1]]) for i in range(n_rows)]
             sky_cols = [np.concatenate([np.asarray(getattr(r, a)) for r in res]) if len(res) > 1 else np.asarray(getattr(res[0], a))
                         for a in ("blocked", "echo_excess_m", "foliage_loss_db")]
-            grads = [getattr(r, "echo_gradient_xy", None) for r in res]
-            walls = [getattr(r, "echo_wall", None) for r in res]
+            grads: list[Any] = [getattr(r, "echo_gradient_xy", None) for r in res]
+            walls: list[Any] = [getattr(r, "echo_wall", None) for r in res]
             echo_wall = (np.concatenate(walls) if len(walls) > 1 else np.asarray(walls[0])).astype(np.int64) \
                 if all(w is not None for w in walls) else np.full(geom.shape[0], -1, dtype=np.int64)
             echo_rate = np.zeros(geom.shape[0])
@@ -539,7 +541,8 @@ class GnssSynthesizer:
                 grad = np.concatenate(grads) if len(grads) > 1 else np.asarray(grads[0])
                 # the antenna's net-XY velocity: its ENU velocity turned by the grid convergence
                 # (grid azimuth = true azimuth - gamma)
-                cg, sg = math.cos(self._convergence_rad), math.sin(self._convergence_rad)
+                gamma = self._convergence_rad or 0.0  # (set with the occlusion's first query)
+                cg, sg = math.cos(gamma), math.sin(gamma)
                 v_e, v_n = np.repeat(vec[:, 0], k_row), np.repeat(vec[:, 1], k_row)
                 rate = grad[:, 0] * (v_e * cg - v_n * sg) + grad[:, 1] * (v_e * sg + v_n * cg)
                 echo_rate = np.where(np.isfinite(rate), rate, 0.0)
@@ -611,7 +614,7 @@ class GnssSynthesizer:
         cand: I64,
         geom: F64,
         vel: F64,
-        sky: tuple[np.ndarray, np.ndarray, np.ndarray] | None,
+        sky: tuple[np.ndarray, ...] | None,
         due: Sequence[tuple[float, Mapping[str, VehicleState]]],
     ) -> list[dict[str, GnssEpoch]]:
         """Tracking, error processes and observables of all receivers (see the module docstring).
