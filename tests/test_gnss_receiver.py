@@ -535,26 +535,88 @@ def test_echo_doppler_follows_the_reflected_path(eph):
     assert np.all(np.abs(echo_rate[nl]) > 1.0)  # the term is metres per second, not a rounding
 
 
-def test_carrier_arcs_are_continuous_through_echo_changes(eph):
+def test_echo_doppler_off_the_central_meridian(eph):
+    """The echo's path rate is computed from the antenna's velocity turned into net XY by the
+    grid convergence (true azimuth = grid azimuth + gamma). Off the projection's central
+    meridian (transverse Mercator 2 deg east of the site: gamma = -1.55 deg) the truth is
+    built consistently (net XY track -> ECEF by the projection, ENU velocity from the ECEF
+    track), and Doppler must still equal the carrier-phase rate for echoes. Tolerance: the
+    6.6e-3 m/s of the satellite's motion (test above) plus the projection's scale error of
+    net-XY geometry, (k - 1) |echo rate| (k measured here, 2.4e-4 expected); a turn of the
+    wrong sign would be off by 2 |gamma| |echo rate| (~0.7 m/s at 13 m/s)."""
+    from v2v.world.occlusion import OcclusionGeometry
+
+    geo = GeoReference(proj="+proj=tmerc +lat_0=51.08 +lon_0=-112.13 +k=1 +x_0=0 +y_0=0 +ellps=WGS84 +units=m",
+                       net_offset_m=(0.0, 0.0))
+    x0, y0 = (float(v) for v in geo.geodetic_to_xy(np.radians(51.08), np.radians(-114.13)))
+    gamma = geo.grid_convergence_rad(x0, y0)
+    assert np.degrees(gamma) == pytest.approx(-1.55, abs=0.02)
+    k_scale = np.linalg.norm(geo.xyz_to_ecef(x0 + 1.0, y0, 1.5) - geo.xyz_to_ecef(x0, y0, 1.5))
+    k_scale = 1.0 / k_scale  # net-XY metres per true metre
+    world = World(buildings=tuple(
+        Building(id=b.id, footprint_xy_m=b.footprint_xy_m + [x0, y0], height_m=b.height_m, height_source="height")
+        for b in _street_world().buildings))
+    occ = OcclusionGeometry(world)
+    err = replace(GnssErrorConfig.ideal(), tracking=TrackingConfig(noise_enabled=False, foliage_enabled=False))
+    v_n = 12.0  # grid north, toward the reflecting wall
+
+    def state(t: float, t_c: float) -> VehicleState:
+        xy = np.array([x0, y0 + v_n * (t - t_c)])
+        ecef = geo.xyz_to_ecef(xy[0], xy[1], ANTENNA_Z_M)
+        v_ecef = (geo.xyz_to_ecef(xy[0], xy[1] + v_n * 1e-3, ANTENNA_Z_M)
+                  - geo.xyz_to_ecef(xy[0], xy[1] - v_n * 1e-3, ANTENNA_Z_M)) / 2e-3
+        lat, lon, h = ecef_to_geodetic(ecef)
+        v = ecef_to_enu_rotation(float(lat), float(lon)) @ v_ecef
+        return VehicleState(vehicle_id="a", cluster="c0", is_lead=False, t_s=t, xyz_m=np.array([*xy, ANTENNA_Z_M]),
+                            lat_rad=float(lat), lon_rad=float(lon), h_m=float(h), ecef_m=ecef, vel_enu_mps=v,
+                            speed_mps=float(np.hypot(v[0], v[1])), accel_mps2=0.0, azimuth_rad=0.0, yaw_rate_rps=0.0,
+                            front_bumper_xy_m=xy, edge_id="e", lane_id="e_0", lane_index=0, lane_width_m=3.5,
+                            lateral_offset_m=0.0, length_m=4.5, width_m=1.8, height_m=1.5)
+
+    checked = 0
+    for t_c in np.arange(600.0, 4 * 3600.0, 600.0):
+        syn = synth(eph, err, occlusion=occ, georef=geo)
+        before, mid, after = (syn.epoch(t, {"a": state(t, t_c)})["a"] for t in (t_c - 0.1, t_c, t_c + 0.1))
+        common = np.intersect1d(np.intersect1d(before.prn, mid.prn), after.prn)
+        i_b, i_m, i_a = (np.searchsorted(e.prn, common) for e in (before, mid, after))
+        nl = ~mid.los[i_m] & ~before.los[i_b] & ~after.los[i_a]
+        same = (before.ambiguity_cycles[i_b] == after.ambiguity_cycles[i_a]) & (after.lock_time_s[i_a] > 0.15)
+        phase_rate = GPS_L1_WAVELENGTH_M * (after.carrier_cycles[i_a] - before.carrier_cycles[i_b]) / 0.2
+        echo_rate = mid.doppler_mps[i_m] - (after.true_range_m[i_a] - before.true_range_m[i_b]) / 0.2
+        sel = nl & same & (np.abs(echo_rate) > 1.0)
+        tol = 6.6e-3 + abs(k_scale - 1.0) * np.abs(echo_rate[sel])
+        assert np.all(np.abs(mid.doppler_mps[i_m][sel] - phase_rate[sel]) < tol), (t_c, mid.doppler_mps[i_m][sel] - phase_rate[sel])
+        checked += int(sel.sum())
+    print(f"gamma {np.degrees(gamma):.3f} deg, k - 1 = {k_scale - 1:.2e}, echo Dopplers checked: {checked}")
+    assert checked >= 3
+
+
+@pytest.mark.parametrize("far_y_m", [25.0, 15.0])
+def test_carrier_arcs_are_continuous_through_echo_changes(eph, far_y_m):
     """A tracked carrier arc (one integer ambiguity) must be continuous: its phase advances by
     the integral of the Doppler, ``lambda dPhi = (D1 + D2) dt / 2`` to within a phase-lock
     loop's pull-in (lambda / 4, 4.8 cm). The car drives 60 m east past two north-side blocks
-    15 m and 25 m from the road (the southern sky blocked): an echo-only satellite's
-    reflection moves from one wall to the other, and its path jumps by metres. That must
-    start a new arc (a receiver loses lock), as a LOS <-> echo switch does. Error-free
-    receiver with echoes; the trapezoid's own error is ~1e-4 m at 10 Hz."""
+    that meet at x = 0 (the southern sky blocked).
+
+    * Blocks 15 m and 25 m from the road: an echo-only satellite's reflection moves from one
+      wall to the other and its path jumps by metres; that must start a new arc (a receiver
+      loses lock), as a LOS <-> echo switch does.
+    * Both 15 m from the road (one facade in two buildings): the path is continuous and no
+      arc may restart between two echoes.
+
+    Error-free receiver with echoes; the trapezoid's own error is ~1e-4 m at 10 Hz."""
     from v2v.world.occlusion import OcclusionGeometry
 
     blocks = (Building(id="south", footprint_xy_m=np.array([[-300, -40], [300, -40], [300, -10], [-300, -10.0]]),
                        height_m=12.0, height_source="height"),
               Building(id="near", footprint_xy_m=np.array([[-300, 15], [0, 15], [0, 45], [-300, 45.0]]),
                        height_m=60.0, height_source="height"),
-              Building(id="far", footprint_xy_m=np.array([[0, 25], [300, 25], [300, 55], [0, 55.0]]),
+              Building(id="far", footprint_xy_m=np.array([[0, far_y_m], [300, far_y_m], [300, 55], [0, 55.0]]),
                        height_m=60.0, height_source="height"))
     occ = OcclusionGeometry(World(buildings=blocks))
     err = replace(GnssErrorConfig.ideal(), tracking=TrackingConfig(noise_enabled=False, foliage_enabled=False))
     v_e, n_ep = 10.0, 61
-    n_switch = 0
+    n_switch = n_echo_pairs = 0
     for t0 in np.arange(0.0, 4 * 3600.0, 900.0):
         syn = synth(eph, err, occlusion=occ, georef=GEO)
         eps = [syn.epoch(t, {"a": vstate("a", t, -30.0 - v_e * t0, 0.0, vel_enu=(v_e, 0.0, 0.0))})["a"]
@@ -564,14 +626,17 @@ def test_carrier_arcs_are_continuous_through_echo_changes(eph):
                 if p not in e1.prn or p not in e2.prn:
                     continue
                 i1, i2 = int(np.flatnonzero(e1.prn == p)[0]), int(np.flatnonzero(e2.prn == p)[0])
+                both_echoes = not e1.los[i1] and not e2.los[i2]
+                n_echo_pairs += both_echoes
                 if e1.ambiguity_cycles[i1] != e2.ambiguity_cycles[i2] or e2.lock_time_s[i2] < 0.05:
-                    n_switch += int(not e1.los[i1] and not e2.los[i2])  # a new arc between two echoes
+                    n_switch += both_echoes  # a new arc between two echoes
                     continue
                 jump = GPS_L1_WAVELENGTH_M * (e2.carrier_cycles[i2] - e1.carrier_cycles[i1]) \
                     - 0.5 * (e1.doppler_mps[i1] + e2.doppler_mps[i2]) * (e2.t_s - e1.t_s)
                 assert abs(jump) < GPS_L1_WAVELENGTH_M / 4, (t0, p, e2.t_s, jump)
-    print("new arcs between two echoes (a reflection moved to the other wall):", n_switch)
-    assert n_switch > 0
+    print(f"far facade at {far_y_m} m: {n_echo_pairs} echo-echo epoch pairs, {n_switch} new arcs between them")
+    assert n_echo_pairs > 100
+    assert (n_switch > 0) if far_y_m != 15.0 else (n_switch == 0)
 
 
 def test_no_gnss_epoch_is_clean(eph):

@@ -24,7 +24,7 @@ from v2v.estimation.reference import ReferenceClusterEkf
 from v2v.estimation.simulate import SimScenario, run_filter, simulate, vehicle_ids
 from v2v.frames import ecef_to_enu_rotation, ecef_to_geodetic
 from v2v.metrics.summary import update_kind_statistics
-from v2v.pipeline import Event, UpdateLog, _faulty, _faulty_flags, _update_counts
+from v2v.pipeline import Event, SolutionRunner, UpdateLog, _faulty, _faulty_flags, _update_counts
 
 
 def test_production_records_match_reference_field_by_field():
@@ -228,3 +228,40 @@ def test_faulty_flags_of_batches_follow_the_per_record_definition():
         assert got == [_faulty(r, ev) for r in want]
         n_true += sum(got)
     assert n_true > 0
+
+
+def test_a_uwb_event_with_several_ranges_is_filtered_as_its_ranges():
+    """The exchange delivers one range per UWB event (``Event.one_range``); an event built with
+    its own several-range ``UwbRanges`` (one time tag) must be filtered as all of them in
+    order, with no prediction between them, as ``update_uwb`` of the whole object does: the
+    same state, covariance, update log and "heard" times as the one-range events."""
+    from v2v.config.sections import SolutionSection
+
+    cfg = FilterConfig()
+    lay = StateLayout.build(lead="lead", vehicles=vehicle_ids(4)[1:])
+    scn = SimScenario(n_vehicles=4, duration_s=2.0)
+    eps = simulate(scn, cfg, np.random.default_rng(3))
+    sol = SolutionSection(name="x", sensors=["gnss", "uwb"])
+    runners = [SolutionRunner(sol, ClusterEkf(lay, cfg), "lead", lay.vehicles) for _ in range(2)]
+    n_ranges, since_gnss = 0, 0.0
+    for k, ep in enumerate(eps):
+        for r in runners:
+            if k > 0:
+                r.ekf.predict(scn.dt_s - since_gnss)
+            r.ekf.update_epoch(gnss=ep.gnss, lead_base_ecef_m=ep.lead_base_ecef_m)
+        since_gnss = 0.0
+        if k < 5 or ep.uwb is None or ep.uwb.n < 2:
+            continue
+        since_gnss = 0.05  # the ranges 50 ms after the GNSS epoch: one prediction before them
+        t = ep.t_s + since_gnss
+        whole = [Event(t, "uwb", uwb=ep.uwb)]
+        one_each = [Event.one_range(t, ep.uwb, i) for i in range(ep.uwb.n)]
+        for r, evs in zip(runners, (whole, one_each), strict=True):
+            ei, t_f, _ = r._uwb_run(evs, 0, t, ep.t_s)
+            assert ei == len(evs) and t_f == t
+        n_ranges += ep.uwb.n
+    (a, b) = runners
+    assert n_ranges > 20
+    assert np.array_equal(a.ekf.x, b.ekf.x) and np.array_equal(a.ekf.P, b.ekf.P)
+    assert a.last_heard == b.last_heard and set(a.last_heard) == {"lead", *lay.vehicles}
+    assert a.rec.log.columns() == b.rec.log.columns() and a.rec.log.n == b.rec.log.n > 20

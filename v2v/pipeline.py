@@ -24,7 +24,6 @@ from v2v.config.sections import SolutionSection
 from v2v.errors import UserError
 from v2v.estimation.filter import (
     KIND_BEARING,
-    KIND_CONSTRAINT,
     KIND_SD_PR,
     KIND_SD_PR_PAIR,
     KIND_UWB,
@@ -516,9 +515,7 @@ class UpdateLog:
                 acc.append(cols["accepted"][m])
                 faulty.append(cols["faulty"][m])
                 nis.append(cols["nis"][m])
-            out[kind] = update_kind_statistics(np.concatenate(acc), np.concatenate(faulty), np.concatenate(nis))
-            if kind == KIND_CONSTRAINT:  # a pull onto a bound (thesis eq. 3.19-3.22), not a measurement: no NIS
-                out[kind]["nis_mean_clean"] = out[kind]["nis_frac_in_band_clean"] = float("nan")
+            out[kind] = update_kind_statistics(np.concatenate(acc), np.concatenate(faulty), np.concatenate(nis), kind)
         return out
 
     def _chunks(self, pickle: Any):
@@ -788,20 +785,23 @@ class SolutionRunner:
         while ei < n and events[ei].kind == "uwb" and events[ei].t_s <= t_out + 1e-9:
             ev = events[ei]
             ei += 1
-            src, k = ev.uwb_source, ev.uwb_index
-            if src is None:  # an event built with its range object
-                src, k = ev.uwb, 0
+            if ev.uwb_source is not None:  # one range of a chunk's columns (what the exchange delivers)
+                src, ks = ev.uwb_source, (ev.uwb_index,)
+            else:  # an event built with its own range object: all its ranges at its time tag
+                src = ev.uwb
                 assert src is not None
-            ak, bk = src.a[k], src.b[k]
-            last_heard[ak] = ev.t_s
-            last_heard[bk] = ev.t_s
-            a.append(ak)
-            b.append(bk)
-            z.append(src.range_m[k])
+                ks = tuple(range(src.n))
             fault = src.errors_m.get("fault")
-            bad.append(not bool(src.los[k]) or (fault is not None and float(fault[k]) != 0.0))
-            t_ev.append(ev.t_s)
-            dts.append(max(0.0, ev.t_s - t_filter))
+            for i, k in enumerate(ks):
+                ak, bk = src.a[k], src.b[k]
+                last_heard[ak] = ev.t_s
+                last_heard[bk] = ev.t_s
+                a.append(ak)
+                b.append(bk)
+                z.append(src.range_m[k])
+                bad.append(not bool(src.los[k]) or (fault is not None and float(fault[k]) != 0.0))
+                t_ev.append(ev.t_s)
+                dts.append(max(0.0, ev.t_s - t_filter) if i == 0 else 0.0)  # (no prediction within an event)
             t_filter = max(t_filter, ev.t_s)
         event_of, infos = self.ekf.update_uwb_run(dts, a, b, np.array(z, dtype=float))
         if not len(infos):
@@ -827,7 +827,7 @@ def run_solution(sol: SolutionSection, ekf: ClusterEkf, events: Sequence[Event],
 
     Output epochs are the GNSS epoch grid (they continue through GNSS outages). In an
     output interval with no usable GNSS, a solution with ``height_aiding`` on adds the
-    "relative up = 0" pseudo-measurement once, before its UWB and bearing updates (UWB and
+    "relative up = h_v - h_lead" pseudo-measurement once, before its UWB and bearing updates (UWB and
     bearings carry no vertical information; see ``FilterConfig.height_aiding_sigma_m``), and
     every solution's filter is told (:meth:`ClusterFilterBase.gnss_unavailable`: no vehicle has
     integrity in such an epoch).

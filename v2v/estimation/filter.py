@@ -616,7 +616,7 @@ class ClusterFilterBase(ABC):
                 if info.kind == KIND_SD_PR and info.accepted:
                     code_ok.setdefault(info.vehicles[0], set()).add(info.prn)
         # Fewer than 4 SD pseudoranges (satellites seen by both): the epoch cannot fix the
-        # relative position, so add "relative up = 0" as in epochs without GNSS (MacGougan
+        # relative position, so add "relative up = h_v - h_lead" as in epochs without GNSS (MacGougan
         # (2009) section 5: "a height constraint was employed when fewer than 4 GPS satellites
         # were available"); UWB and bearings are then no longer deferred for nonlinearity
         # (:meth:`_nonlinear_fraction`).

@@ -88,16 +88,17 @@ def _update_stats(u: pd.DataFrame) -> dict[str, Any]:
     res: dict[str, Any] = {}
     for kind, g in u.groupby("kind", sort=True):
         res[str(kind)] = update_kind_statistics(g["accepted"].to_numpy(bool), g["faulty"].to_numpy(bool),
-                                                g["nis"].to_numpy(float))
+                                                g["nis"].to_numpy(float), str(kind))
     return res
 
 
-def update_kind_statistics(acc: np.ndarray, faulty: np.ndarray, nis: np.ndarray) -> dict[str, Any]:
+def update_kind_statistics(acc: np.ndarray, faulty: np.ndarray, nis: np.ndarray, kind: str = "") -> dict[str, Any]:
     """Rejections and NIS of one measurement kind's updates (in update order): used / rejected,
     true / false rejections and missed faults (the simulator knows which were faulty), NIS
-    mean and fraction inside the chi-square band over the clean updates."""
+    mean and fraction inside the chi-square band over the clean updates. ``uwb_constraint``
+    updates (pulls onto a bound, thesis eq. 3.19-3.22) are not measurements: no NIS."""
     lo, hi = chi2_band(NIS_DOF)
-    clean = ~faulty
+    clean = ~faulty & (kind != "uwb_constraint")
     return {
         "used": int(acc.sum()),
         "rejected": int((~acc).sum()),

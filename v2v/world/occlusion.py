@@ -104,9 +104,11 @@ class SkyResult:
     antenna height), so the echo's path rate is ``echo_gradient_xy . v_xy`` for an antenna
     moving at ``v_xy`` (the satellite's motion adds ``2 d_w (ds/dt . n)``, ~1e-4 rad/s times
     the wall distance: mm/s, left out). NaN where ``echo_excess_m`` is; ``None`` from
-    objects that do not compute it (then taken as zero). ``echo_wall`` is the index of the
-    reflecting wall (-1 where there is no echo): an echo that moves to another wall jumps in
-    path length, which a receiver's phase lock does not follow (a new carrier arc).
+    objects that do not compute it (then taken as zero). ``echo_wall`` identifies the
+    reflecting wall's vertical plane (-1 where there is no echo; walls of one facade, split
+    between buildings or at in-line footprint vertices, share it): an echo that moves to
+    another plane jumps in path length, which a receiver's phase lock does not follow (a new
+    carrier arc); along one plane the path is continuous.
     """
 
     blocked: NDArray[np.bool_]
@@ -145,6 +147,29 @@ def _ccw(footprint_xy_m: ArrayLike) -> FloatArray:
 
 def _cross(a: FloatArray, b: FloatArray) -> FloatArray:
     return a[..., 0] * b[..., 1] - a[..., 1] * b[..., 0]
+
+
+def _plane_ids(normals: FloatArray, points: FloatArray, tol_rad: float = 1e-6, tol_m: float = 1e-3) -> NDArray[np.int64]:
+    """One id per vertical wall plane: walls whose unit normals agree to ``tol_rad`` and whose
+    offsets ``n . a`` agree to ``tol_m`` share an id (a facade split between buildings, or at
+    in-line vertices of one footprint). Ids are consecutive from 0 in the order of the sorted
+    (normal azimuth, offset) pairs; the tolerances are far below what a real facade could
+    distinguish and far above float rounding of the footprint coordinates."""
+    n = normals.shape[0]
+    ids = np.zeros(n, dtype=np.int64)
+    if n == 0:
+        return ids
+    ang = np.arctan2(normals[:, 0], normals[:, 1]) % (2 * np.pi)
+    off = normals[:, 0] * points[:, 0] + normals[:, 1] * points[:, 1]
+    order = np.lexsort((off, np.round(ang / tol_rad)))
+    pid = 0
+    ids[order[0]] = 0
+    for prev, cur in zip(order[:-1], order[1:], strict=True):
+        d_ang = abs((ang[cur] - ang[prev] + np.pi) % (2 * np.pi) - np.pi)
+        if not (d_ang <= tol_rad and abs(off[cur] - off[prev]) <= tol_m):
+            pid += 1
+        ids[cur] = pid
+    return ids
 
 
 def _group_min(group: NDArray[np.int64], value: FloatArray, n: int) -> tuple[FloatArray, NDArray[np.int64]]:
@@ -471,6 +496,7 @@ class OcclusionGeometry:
             np.column_stack([self._w_dir[:, 1], -self._w_dir[:, 0]]) if self._w_len.size else np.zeros((0, 2))
         )
         self._w_nx, self._w_ny = self._w_n[:, 0].copy(), self._w_n[:, 1].copy()
+        self._w_plane = _plane_ids(self._w_n, self._wa)
         self._wall_tree = shapely.STRtree(shapely.linestrings(np.stack([self._wa, self._wb], axis=1)))
         self._b_polys = np.array(
             [shapely.make_valid(shapely.Polygon(b.footprint_xy_m)) for b in bl], dtype=object
@@ -912,7 +938,7 @@ class OcclusionGeometry:
         nx, ny = self._w_nx[w], self._w_ny[w]
         c2 = 2.0 * (s_hx[k] * nx + s_hy[k] * ny)  # 2 (s . n), c as the kernel computes it
         grad[rays[got], 0], grad[rays[got], 1] = c2 * nx, c2 * ny
-        wall[rays[got]] = w
+        wall[rays[got]] = self._w_plane[w]
         return out, grad, wall
 
     def _sky_echo_vectorized(
@@ -1026,7 +1052,7 @@ class OcclusionGeometry:
         got = which >= 0
         c2 = 2.0 * c[which[got]]
         grad[rays[got], 0], grad[rays[got], 1] = c2 * nx[which[got]], c2 * ny[which[got]]
-        wall[rays[got]] = wi[which[got]]
+        wall[rays[got]] = self._w_plane[wi[which[got]]]
         return out, grad, wall
 
     # ------------------------------------------------------------------ links
