@@ -224,10 +224,25 @@ def test_faulty_flags_of_batches_follow_the_per_record_definition():
     ]
     n_true = 0
     for ev in events:
-        got = _faulty_flags(up, ev)
-        assert got == [_faulty(r, ev) for r in want]
-        n_true += sum(got)
+        for lead in (None, "v2"):
+            got = _faulty_flags(up, ev, lead)
+            assert got == [_faulty(r, ev, lead) for r in want]
+            n_true += sum(got)
     assert n_true > 0
+
+
+def test_an_sd_pseudorange_is_faulty_when_the_leads_signal_is():
+    """``P_v - P_lead``: an NLOS or faulted signal at the lead corrupts the follower's SD of
+    that satellite as much as its own does; a pair SD between two followers is corrupted by
+    either of them, not by the lead."""
+    ev = Event(0.1, "gnss", gnss={}, bad_prns={"lead": frozenset({7}), "v1": frozenset({9})})
+    recs = [UpdateInfo("sd_pseudorange", ("v1",), 0.1, 1.0, 0.01, True, 7),
+            UpdateInfo("sd_pseudorange", ("v1",), 0.1, 1.0, 0.01, True, 9),
+            UpdateInfo("sd_pseudorange", ("v1",), 0.1, 1.0, 0.01, True, 12),
+            UpdateInfo("sd_pseudorange_pair", ("v1", "v2"), 0.1, 1.0, 0.01, True, 7)]
+    assert [_faulty(r, ev, "lead") for r in recs] == [True, True, False, False]
+    batch = UpdateBatch("sd_pseudorange", [("v1",)] * 3, np.full(3, 0.1), np.ones(3), [7, 9, 12])
+    assert _faulty_flags(Updates([batch]), ev, "lead") == [True, True, False]
 
 
 def test_a_uwb_event_with_several_ranges_is_filtered_as_its_ranges():

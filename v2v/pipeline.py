@@ -590,11 +590,14 @@ class SolutionRecord:
         return rows
 
 
-def _faulty(info: UpdateInfo, ev: Event) -> bool:
-    """Did the simulator corrupt this measurement beyond the filter's model (NLOS or an injected fault)?"""
+def _faulty(info: UpdateInfo, ev: Event, lead: str | None = None) -> bool:
+    """Did the simulator corrupt this measurement beyond the filter's model (NLOS or an injected
+    fault)? An SD pseudorange ``P_v - P_lead`` is corrupted when either receiver's signal is
+    (the lead's own only when ``lead`` is given); a pair SD by either of its two vehicles."""
     if info.kind in (KIND_SD_PR, KIND_SD_PR_PAIR) and ev.gnss is not None:
         bad = ev.bad_prns if ev.bad_prns is not None else _bad_prns(ev.gnss)
-        return any(info.prn in bad.get(v, ()) for v in info.vehicles)
+        vehs = info.vehicles + (lead,) if info.kind == KIND_SD_PR and lead is not None else info.vehicles
+        return any(info.prn in bad.get(v, ()) for v in vehs)
     if info.kind == KIND_UWB and ev.uwb is not None:
         return not bool(ev.uwb.los[0]) or float(ev.uwb.errors_m.get("fault", np.zeros(1))[0]) != 0.0
     if info.kind == KIND_BEARING and ev.bearings is not None:
@@ -602,7 +605,7 @@ def _faulty(info: UpdateInfo, ev: Event) -> bool:
     return False
 
 
-def _faulty_flags(infos: Sequence[UpdateInfo], ev: Event) -> list[bool]:
+def _faulty_flags(infos: Sequence[UpdateInfo], ev: Event, lead: str | None = None) -> list[bool]:
     """:func:`_faulty` of every update of one event, with the event-level work done once
     (most GNSS events have no NLOS / faulted satellite at all); the batches of an
     :class:`Updates` from their columns (one kind each)."""
@@ -610,16 +613,18 @@ def _faulty_flags(infos: Sequence[UpdateInfo], ev: Event) -> list[bool]:
         bad = ev.bad_prns if ev.bad_prns is not None else (_bad_prns(ev.gnss) if ev.gnss is not None else {})
         if not any(bad.values()):
             return [False] * len(infos)
+        lead_bad = bad.get(lead, frozenset()) if lead is not None else frozenset()
         out: list[bool] = []
         for seg in _segments(infos):
             if isinstance(seg, UpdateBatch):
                 if seg.kind in (KIND_SD_PR, KIND_SD_PR_PAIR) and seg.prn is not None:
-                    out += [any(p in bad.get(v, ()) for v in vehs) for vehs, p in zip(seg.vehicles, seg.prn, strict=True)]
+                    also = lead_bad if seg.kind == KIND_SD_PR else frozenset()
+                    out += [p in also or any(p in bad.get(v, ()) for v in vehs)
+                            for vehs, p in zip(seg.vehicles, seg.prn, strict=True)]
                 else:
                     out += [False] * len(seg)
             else:
-                out += [info.kind in (KIND_SD_PR, KIND_SD_PR_PAIR) and any(info.prn in bad.get(v, ()) for v in info.vehicles)
-                        for info in seg]
+                out += [_faulty(info, ev, lead) for info in seg]
         return out
     if ev.kind in ("uwb", "bearing"):
         own = KIND_UWB if ev.kind == "uwb" else KIND_BEARING
@@ -742,7 +747,7 @@ class SolutionRunner:
                 else:
                     infos += ekf.update_bearings(ev.bearings)  # type: ignore[arg-type]
                 if infos:
-                    rec.log.add(ev.t_s, infos, _faulty_flags(infos, ev))
+                    rec.log.add(ev.t_s, infos, _faulty_flags(infos, ev, lead))
                 pending += infos
             if t_filter is None:
                 continue
