@@ -790,8 +790,10 @@ class SolutionRunner:
         while ei < n and events[ei].kind == "uwb" and events[ei].t_s <= t_out + 1e-9:
             ev = events[ei]
             ei += 1
-            if ev.uwb_source is not None:  # one range of a chunk's columns (what the exchange delivers)
-                src, ks = ev.uwb_source, (ev.uwb_index,)
+            src: UwbRanges | None = ev.uwb_source
+            ks: tuple[int, ...]
+            if src is not None:  # one range of a chunk's columns (what the exchange delivers)
+                ks = (ev.uwb_index,)
             else:  # an event built with its own range object: all its ranges at its time tag
                 src = ev.uwb
                 assert src is not None
