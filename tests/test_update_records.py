@@ -280,3 +280,16 @@ def test_a_uwb_event_with_several_ranges_is_filtered_as_its_ranges():
     assert np.array_equal(a.ekf.x, b.ekf.x) and np.array_equal(a.ekf.P, b.ekf.P)
     assert a.last_heard == b.last_heard and set(a.last_heard) == {"lead", *lay.vehicles}
     assert a.rec.log.columns() == b.rec.log.columns() and a.rec.log.n == b.rec.log.n > 20
+
+
+def test_an_sd_doppler_is_faulty_when_either_signal_is_an_echo():
+    """An echo-only signal's Doppler carries the reflected path's rate (up to 2 |v|), so an SD
+    Doppler is flagged when the follower's or the lead's signal of that satellite is NLOS;
+    an injected pseudorange fault (``bad_prns`` but line of sight) leaves the Doppler clean."""
+    ev = Event(0.1, "gnss", gnss={}, bad_prns={"lead": frozenset({7}), "v1": frozenset({9, 11})},
+               nlos_prns={"lead": frozenset({7}), "v1": frozenset({9})})
+    recs = [UpdateInfo("sd_doppler", ("v1",), 0.1, 1.0, 0.01, True, p) for p in (7, 9, 11, 12)]
+    assert [_faulty(r, ev, "lead") for r in recs] == [True, True, False, False]
+    batch = UpdateBatch("sd_doppler", [("v1",)] * 4, np.full(4, 0.1), np.ones(4), [7, 9, 11, 12])
+    assert _faulty_flags(Updates([batch]), ev, "lead") == [True, True, False, False]
+    assert _faulty_flags(Updates([batch]), ev) == [False, True, False, False]  # without the lead: its echo unseen

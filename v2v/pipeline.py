@@ -24,6 +24,7 @@ from v2v.config.sections import SolutionSection
 from v2v.errors import UserError
 from v2v.estimation.filter import (
     KIND_BEARING,
+    KIND_SD_DOPPLER,
     KIND_SD_PR,
     KIND_SD_PR_PAIR,
     KIND_UWB,
@@ -182,7 +183,9 @@ class Event:
     """A batch of measurements with one time tag, as the lead's filter receives it.
 
     ``bad_prns``: per vehicle, the PRNs whose pseudorange the simulator corrupted beyond the
-    filter's model (NLOS or an injected fault), computed once per event for every solution.
+    filter's model (NLOS or an injected fault), computed once per event for every solution;
+    ``nlos_prns`` the NLOS (echo-only) ones among them, whose Doppler carries the echo's path
+    rate (injected faults are on the pseudorange only).
 
     A UWB event delivered by the exchange holds one range: range ``uwb_index`` of the chunk's
     :class:`UwbRanges` ``uwb_source``; :attr:`uwb` is that range as its own ``UwbRanges``
@@ -190,13 +193,15 @@ class Event:
     :meth:`SolutionRunner._uwb_run`). Read-only by convention, like the frozen record it was.
     """
 
-    __slots__ = ("t_s", "kind", "gnss", "_uwb", "bearings", "lead_base_ecef_m", "bad_prns", "uwb_source", "uwb_index")
+    __slots__ = ("t_s", "kind", "gnss", "_uwb", "bearings", "lead_base_ecef_m", "bad_prns", "nlos_prns", "uwb_source",
+                 "uwb_index")
 
     def __init__(self, t_s: float, kind: str, gnss: dict[str, GnssEpoch] | None = None, uwb: UwbRanges | None = None,
                  bearings: Bearings | None = None, lead_base_ecef_m: np.ndarray | None = None,
-                 bad_prns: dict[str, frozenset[int]] | None = None) -> None:
+                 bad_prns: dict[str, frozenset[int]] | None = None,
+                 nlos_prns: dict[str, frozenset[int]] | None = None) -> None:
         self.t_s, self.kind, self.gnss, self._uwb, self.bearings = t_s, kind, gnss, uwb, bearings  # "gnss" | "uwb" | "bearing"
-        self.lead_base_ecef_m, self.bad_prns = lead_base_ecef_m, bad_prns
+        self.lead_base_ecef_m, self.bad_prns, self.nlos_prns = lead_base_ecef_m, bad_prns, nlos_prns
         self.uwb_source: UwbRanges | None = None
         self.uwb_index = -1
 
@@ -228,14 +233,15 @@ def _subset_bearings(b: Bearings, idx: np.ndarray) -> Bearings:
     )
 
 
-def _bad_prns(eps: dict[str, GnssEpoch]) -> dict[str, frozenset[int]]:
-    """Per vehicle: PRNs (first occurrence in the epoch) that are NLOS or carry an injected fault."""
+def _bad_prns(eps: dict[str, GnssEpoch], nlos_only: bool = False) -> dict[str, frozenset[int]]:
+    """Per vehicle: PRNs (first occurrence in the epoch) that are NLOS or carry an injected
+    fault (``nlos_only``: NLOS only)."""
     out: dict[str, frozenset[int]] = {}
     for v, ep in eps.items():
         if ep.n == 0:
             out[v] = frozenset()
             continue
-        fault = ep.errors_m.get("fault")
+        fault = None if nlos_only else ep.errors_m.get("fault")
         bad = ~np.asarray(ep.los, dtype=bool)
         if fault is not None:
             bad = bad | (fault != 0.0)
@@ -350,7 +356,9 @@ class ExchangeStream:
             if m.kind == "gnss":
                 eps = {g.sender: g.payload for g in group}
                 base = self.lead_base(eps[lead_id]) if lead_id in eps else None
-                events.append(Event(m.t_s, "gnss", gnss=eps, lead_base_ecef_m=base, bad_prns=_bad_prns(eps)))
+                bad = _bad_prns(eps)
+                nlos = _bad_prns(eps, nlos_only=True) if any(bad.values()) else bad
+                events.append(Event(m.t_s, "gnss", gnss=eps, lead_base_ecef_m=base, bad_prns=bad, nlos_prns=nlos))
             elif m.kind == "uwb":
                 for g in group:
                     src, idx = g.payload
@@ -598,6 +606,10 @@ def _faulty(info: UpdateInfo, ev: Event, lead: str | None = None) -> bool:
         bad = ev.bad_prns if ev.bad_prns is not None else _bad_prns(ev.gnss)
         vehs = info.vehicles + (lead,) if info.kind == KIND_SD_PR and lead is not None else info.vehicles
         return any(info.prn in bad.get(v, ()) for v in vehs)
+    if info.kind == KIND_SD_DOPPLER and ev.gnss is not None:  # an echo's Doppler carries its path rate
+        nlos = ev.nlos_prns if ev.nlos_prns is not None else _bad_prns(ev.gnss, nlos_only=True)
+        vehs = info.vehicles + (lead,) if lead is not None else info.vehicles
+        return any(info.prn in nlos.get(v, ()) for v in vehs)
     if info.kind == KIND_UWB and ev.uwb is not None:
         return not bool(ev.uwb.los[0]) or float(ev.uwb.errors_m.get("fault", np.zeros(1))[0]) != 0.0
     if info.kind == KIND_BEARING and ev.bearings is not None:
@@ -620,6 +632,12 @@ def _faulty_flags(infos: Sequence[UpdateInfo], ev: Event, lead: str | None = Non
                 if seg.kind in (KIND_SD_PR, KIND_SD_PR_PAIR) and seg.prn is not None:
                     also = lead_bad if seg.kind == KIND_SD_PR else frozenset()
                     out += [p in also or any(p in bad.get(v, ()) for v in vehs)
+                            for vehs, p in zip(seg.vehicles, seg.prn, strict=True)]
+                elif seg.kind == KIND_SD_DOPPLER and seg.prn is not None:
+                    nlos = ev.nlos_prns if ev.nlos_prns is not None else (
+                        _bad_prns(ev.gnss, nlos_only=True) if ev.gnss is not None else {})
+                    lead_nlos = nlos.get(lead, frozenset()) if lead is not None else frozenset()
+                    out += [p in lead_nlos or any(p in nlos.get(v, ()) for v in vehs)
                             for vehs, p in zip(seg.vehicles, seg.prn, strict=True)]
                 else:
                     out += [False] * len(seg)
