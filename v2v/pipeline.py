@@ -233,24 +233,25 @@ def _subset_bearings(b: Bearings, idx: np.ndarray) -> Bearings:
     )
 
 
-def _bad_prns(eps: dict[str, GnssEpoch], nlos_only: bool = False) -> dict[str, frozenset[int]]:
-    """Per vehicle: PRNs (first occurrence in the epoch) that are NLOS or carry an injected
-    fault (``nlos_only``: NLOS only)."""
-    out: dict[str, frozenset[int]] = {}
+def _bad_prns(eps: dict[str, GnssEpoch]) -> tuple[dict[str, frozenset[int]], dict[str, frozenset[int]]]:
+    """Per vehicle: the PRNs (first occurrence in the epoch) that are NLOS or carry an injected
+    fault, and the NLOS ones among them (:class:`Event` ``bad_prns``, ``nlos_prns``)."""
+    bad_out: dict[str, frozenset[int]] = {}
+    nlos_out: dict[str, frozenset[int]] = {}
     for v, ep in eps.items():
+        bad_out[v] = nlos_out[v] = frozenset()
         if ep.n == 0:
-            out[v] = frozenset()
             continue
-        fault = None if nlos_only else ep.errors_m.get("fault")
-        bad = ~np.asarray(ep.los, dtype=bool)
-        if fault is not None:
-            bad = bad | (fault != 0.0)
+        nlos = ~np.asarray(ep.los, dtype=bool)
+        fault = ep.errors_m.get("fault")
+        bad = nlos | (fault != 0.0) if fault is not None else nlos
         if not bad.any():  # the common case: nothing NLOS or faulted
-            out[v] = frozenset()
             continue
         _, first = np.unique(ep.prn, return_index=True)
-        out[v] = frozenset(int(p) for p in ep.prn[first][bad[first]])
-    return out
+        prn = ep.prn[first]
+        bad_out[v] = frozenset(int(p) for p in prn[bad[first]])
+        nlos_out[v] = frozenset(int(p) for p in prn[nlos[first]])
+    return bad_out, nlos_out
 
 
 class ExchangeStream:
@@ -356,8 +357,7 @@ class ExchangeStream:
             if m.kind == "gnss":
                 eps = {g.sender: g.payload for g in group}
                 base = self.lead_base(eps[lead_id]) if lead_id in eps else None
-                bad = _bad_prns(eps)
-                nlos = _bad_prns(eps, nlos_only=True) if any(bad.values()) else bad
+                bad, nlos = _bad_prns(eps)
                 events.append(Event(m.t_s, "gnss", gnss=eps, lead_base_ecef_m=base, bad_prns=bad, nlos_prns=nlos))
             elif m.kind == "uwb":
                 for g in group:
@@ -598,18 +598,28 @@ class SolutionRecord:
         return rows
 
 
+def _corrupting_prns(ev: Event, kind: str) -> dict[str, frozenset[int]] | None:
+    """Per vehicle, the PRNs whose ``kind`` GNSS measurement the simulator corrupted: NLOS or an
+    injected fault for (pair) SD pseudoranges, NLOS for SD Dopplers (an echo's Doppler carries
+    its path rate; the faults are on the pseudorange); None for other kinds."""
+    if kind not in (KIND_SD_PR, KIND_SD_PR_PAIR, KIND_SD_DOPPLER) or ev.gnss is None:
+        return None
+    if ev.bad_prns is None:
+        bad, nlos = _bad_prns(ev.gnss)
+    else:
+        bad, nlos = ev.bad_prns, ev.nlos_prns if ev.nlos_prns is not None else _bad_prns(ev.gnss)[1]
+    return nlos if kind == KIND_SD_DOPPLER else bad
+
+
 def _faulty(info: UpdateInfo, ev: Event, lead: str | None = None) -> bool:
     """Did the simulator corrupt this measurement beyond the filter's model (NLOS or an injected
-    fault)? An SD pseudorange ``P_v - P_lead`` is corrupted when either receiver's signal is
-    (the lead's own only when ``lead`` is given); a pair SD by either of its two vehicles."""
-    if info.kind in (KIND_SD_PR, KIND_SD_PR_PAIR) and ev.gnss is not None:
-        bad = ev.bad_prns if ev.bad_prns is not None else _bad_prns(ev.gnss)
-        vehs = info.vehicles + (lead,) if info.kind == KIND_SD_PR and lead is not None else info.vehicles
-        return any(info.prn in bad.get(v, ()) for v in vehs)
-    if info.kind == KIND_SD_DOPPLER and ev.gnss is not None:  # an echo's Doppler carries its path rate
-        nlos = ev.nlos_prns if ev.nlos_prns is not None else _bad_prns(ev.gnss, nlos_only=True)
-        vehs = info.vehicles + (lead,) if lead is not None else info.vehicles
-        return any(info.prn in nlos.get(v, ()) for v in vehs)
+    fault)? A single difference with the lead (SD pseudorange ``P_v - P_lead``, SD Doppler) is
+    corrupted when either receiver's signal is (the lead's only when ``lead`` is given); a pair
+    SD by either of its two vehicles."""
+    sets = _corrupting_prns(ev, info.kind)
+    if sets is not None:
+        vehs = info.vehicles + (lead,) if info.kind != KIND_SD_PR_PAIR and lead is not None else info.vehicles
+        return any(info.prn in sets.get(v, ()) for v in vehs)
     if info.kind == KIND_UWB and ev.uwb is not None:
         return not bool(ev.uwb.los[0]) or float(ev.uwb.errors_m.get("fault", np.zeros(1))[0]) != 0.0
     if info.kind == KIND_BEARING and ev.bearings is not None:
@@ -622,22 +632,16 @@ def _faulty_flags(infos: Sequence[UpdateInfo], ev: Event, lead: str | None = Non
     (most GNSS events have no NLOS / faulted satellite at all); the batches of an
     :class:`Updates` from their columns (one kind each)."""
     if ev.kind == "gnss":
-        bad = ev.bad_prns if ev.bad_prns is not None else (_bad_prns(ev.gnss) if ev.gnss is not None else {})
+        bad = ev.bad_prns if ev.bad_prns is not None else (_bad_prns(ev.gnss)[0] if ev.gnss is not None else {})
         if not any(bad.values()):
             return [False] * len(infos)
-        lead_bad = bad.get(lead, frozenset()) if lead is not None else frozenset()
         out: list[bool] = []
         for seg in _segments(infos):
             if isinstance(seg, UpdateBatch):
-                if seg.kind in (KIND_SD_PR, KIND_SD_PR_PAIR) and seg.prn is not None:
-                    also = lead_bad if seg.kind == KIND_SD_PR else frozenset()
-                    out += [p in also or any(p in bad.get(v, ()) for v in vehs)
-                            for vehs, p in zip(seg.vehicles, seg.prn, strict=True)]
-                elif seg.kind == KIND_SD_DOPPLER and seg.prn is not None:
-                    nlos = ev.nlos_prns if ev.nlos_prns is not None else (
-                        _bad_prns(ev.gnss, nlos_only=True) if ev.gnss is not None else {})
-                    lead_nlos = nlos.get(lead, frozenset()) if lead is not None else frozenset()
-                    out += [p in lead_nlos or any(p in nlos.get(v, ()) for v in vehs)
+                sets = _corrupting_prns(ev, seg.kind)
+                if sets is not None and seg.prn is not None:
+                    also = sets.get(lead, frozenset()) if lead is not None and seg.kind != KIND_SD_PR_PAIR else frozenset()
+                    out += [p in also or any(p in sets.get(v, ()) for v in vehs)
                             for vehs, p in zip(seg.vehicles, seg.prn, strict=True)]
                 else:
                     out += [False] * len(seg)

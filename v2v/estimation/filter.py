@@ -1647,9 +1647,6 @@ class ClusterEkf(ClusterFilterBase):
     def update_uwb_events(self, dts_s: Sequence[float], events: Sequence[UwbRanges]) -> list[Sequence[UpdateInfo]]:
         """:meth:`ClusterFilterBase.update_uwb_events` in one
         :func:`v2v.estimation.kernels.uwb_event_run` call (the same predictions and batches)."""
-        for dt in dts_s:
-            if not (math.isfinite(dt) and dt >= 0.0):
-                raise ValueError(f"dt_s must be finite and >= 0, got {dt!r}")
         a_list: list[str] = []
         b_list: list[str] = []
         z_parts = []
@@ -1661,11 +1658,7 @@ class ClusterEkf(ClusterFilterBase):
             z_parts.append(np.asarray(ranges.range_m, dtype=float)[use])
             starts.append(len(a_list))
         z = np.concatenate(z_parts) if z_parts else np.zeros(0)
-        pairs, args = self._uwb_kernel_args(a_list, b_list, z)
-        recs = kernels.uwb_event_run(self._x, self._P, np.asarray(dts_s, dtype=float), np.asarray(starts, dtype=np.int64),
-                                     *args, self._veh0, self._nveh, self._vpar, self._rw_diag, self._rw_psd,
-                                     self._az_ia, self._az_ir, self._apar)
-        ks, infos = self._uwb_records(recs, a_list, b_list, pairs)
+        ks, infos = self._uwb_event_kernel(dts_s, np.asarray(starts, dtype=np.int64), a_list, b_list, z)
         # the records of event e: those whose range index ks lies in [starts[e], starts[e + 1])
         # (ks increases: one contiguous slice per event)
         cut = np.searchsorted(np.asarray(ks, dtype=np.int64), np.asarray(starts, dtype=np.int64)).tolist()
@@ -1677,9 +1670,6 @@ class ClusterEkf(ClusterFilterBase):
         :func:`v2v.estimation.kernels.uwb_event_run` call (the same predictions and updates as
         :meth:`update_uwb_events` of one-range events). The usable ranges are chosen for the
         whole run at once: readiness does not change within a run of UWB events."""
-        for dt in dts_s:
-            if not (math.isfinite(dt) and dt >= 0.0):
-                raise ValueError(f"dt_s must be finite and >= 0, got {dt!r}")
         zf = np.asarray(z, dtype=float)
         use = self._usable_pairs(KIND_UWB, tuple(a), tuple(b), zf)
         n = len(dts_s)
@@ -1689,12 +1679,22 @@ class ClusterEkf(ClusterFilterBase):
         else:
             a_list, b_list, zu = [a[k] for k in use], [b[k] for k in use], zf[use]
             starts = np.searchsorted(np.asarray(use, dtype=np.int64), np.arange(n + 1, dtype=np.int64)).astype(np.int64)
-        pairs, args = self._uwb_kernel_args(a_list, b_list, zu)
+        ks, infos = self._uwb_event_kernel(dts_s, starts, a_list, b_list, zu)
+        return (ks if len(use) == n else [use[k] for k in ks]), infos
+
+    def _uwb_event_kernel(self, dts_s: Sequence[float], starts: NDArray[np.int64], a_list: list[str],
+                          b_list: list[str], z: F64) -> tuple[list[int], Sequence[UpdateInfo]]:
+        """:func:`v2v.estimation.kernels.uwb_event_run` of usable ranges (event ``e``: predict
+        over ``dts_s[e]``, then ranges ``starts[e]:starts[e + 1]``); (range index of each record,
+        the records)."""
+        for dt in dts_s:
+            if not (math.isfinite(dt) and dt >= 0.0):
+                raise ValueError(f"dt_s must be finite and >= 0, got {dt!r}")
+        pairs, args = self._uwb_kernel_args(a_list, b_list, z)
         recs = kernels.uwb_event_run(self._x, self._P, np.asarray(dts_s, dtype=float), starts,
                                      *args, self._veh0, self._nveh, self._vpar, self._rw_diag, self._rw_psd,
                                      self._az_ia, self._az_ir, self._apar)
-        ks, infos = self._uwb_records(recs, a_list, b_list, pairs)
-        return (ks if len(use) == n else [use[k] for k in ks]), infos
+        return self._uwb_records(recs, a_list, b_list, pairs)
 
     def _bearing_sequence(self, a_list: list[str], b_list: list[str], z: F64, az_reported: F64) -> Sequence[UpdateInfo]:
         """All usable bearings in one :func:`v2v.estimation.kernels.bearing_batch` call."""

@@ -7,6 +7,7 @@ from typing import Any
 import numpy as np
 import pandas as pd
 
+from v2v.estimation.filter import KIND_CONSTRAINT
 from v2v.metrics.errors import chi2_band, consistency_summary, error_statistics
 
 NIS_DOF = 1  # every update is scalar
@@ -98,7 +99,7 @@ def update_kind_statistics(acc: np.ndarray, faulty: np.ndarray, nis: np.ndarray,
     mean and fraction inside the chi-square band over the clean updates. ``uwb_constraint``
     updates (pulls onto a bound, thesis eq. 3.19-3.22) are not measurements: no NIS."""
     lo, hi = chi2_band(NIS_DOF)
-    clean = ~faulty & (kind != "uwb_constraint")
+    clean = ~faulty & (kind != KIND_CONSTRAINT)
     return {
         "used": int(acc.sum()),
         "rejected": int((~acc).sum()),
