@@ -12,6 +12,7 @@ Every solution processes the *same* measurements (and the same exchange losses).
 from __future__ import annotations
 
 import itertools
+from collections import Counter
 from collections.abc import Callable, Iterable, Sequence
 from dataclasses import dataclass, field
 from pathlib import Path
@@ -879,16 +880,28 @@ _COUNT_KEYS: dict[tuple[str, bool], str] = {}  # (kind, accepted) -> "used_<kind
 
 def _update_counts(infos: Sequence[UpdateInfo]) -> dict[str, dict[str, int]]:
     """``{vehicle: {"used_<kind>" | "rejected_<kind>": count}}`` of an output interval's updates
-    (counted per distinct (vehicles, kind, accepted) first: tens of thousands of records)."""
+    (an update counts once for each vehicle it names). A batch's vehicles are counted from its
+    column in one pass (tens of thousands of records per epoch in a large cluster: bearings
+    and ranges name a distinct pair each)."""
     counts: dict[str, dict[str, int]] = {}
-    per = (infos if isinstance(infos, Updates) else Updates([infos])).counts()
-    for (vehs, kind, accepted), n in per.items():
-        key = _COUNT_KEYS.get((kind, accepted)) or _COUNT_KEYS.setdefault(
-            (kind, accepted), ("used_" if accepted else "rejected_") + _short(kind))
-        for v in vehs:
-            c = counts.setdefault(v, {})
-            c[key] = c.get(key, 0) + n
+    per: Counter[tuple[str, str]] = Counter()  # (vehicle, count key)
+    for p in (infos.parts if isinstance(infos, Updates) else [infos]):
+        if isinstance(p, UpdateBatch):  # all accepted
+            key = _count_key(p.kind, True)
+            per.update(zip(itertools.chain.from_iterable(p.vehicles), itertools.repeat(key)))
+        else:
+            per.update((v, _count_key(info.kind, info.accepted)) for info in p for v in info.vehicles)
+    for (v, key), n in per.items():
+        counts.setdefault(v, {})[key] = n
     return counts
+
+
+def _count_key(kind: str, accepted: bool) -> str:
+    """"used_<kind>" | "rejected_<kind>" (short kind names: :data:`_KIND_COLUMNS`)."""
+    key = _COUNT_KEYS.get((kind, accepted))
+    if key is None:
+        key = _COUNT_KEYS[(kind, accepted)] = ("used_" if accepted else "rejected_") + _short(kind)
+    return key
 
 
 def _epoch_rows(name: str, t_s: float, ekf: ClusterEkf, step: TrafficStep, lead: str, vehicles: Sequence[str],
