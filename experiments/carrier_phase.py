@@ -29,6 +29,7 @@ Outputs in ``--out``: ``carrier_phase.md`` (all tables), one CSV per table,
 Run::
 
     .venv/bin/python experiments/carrier_phase.py --out /tmp/phase --seeds 1 2 3
+    .venv/bin/python experiments/carrier_phase.py --out /tmp/phase41 --parts init_drive --solution-set gnss_cn0_mask_dbhz=41
 """
 
 from __future__ import annotations
@@ -46,7 +47,9 @@ SCENARIO = HERE.parent / "scenarios" / "phase_init_drive.toml"
 OPEN_EDGE_PREFIX = "w_far"  # the open-sky approach of urban_canyon's init_drive route
 
 
-def _phase_solutions(uwb_sigma_m: float, bearing: bool = True) -> str:
+def _phase_solutions(uwb_sigma_m: float, bearing: bool = True, extra: tuple[str, ...] = ()) -> str:
+    """The solutions as a ``solutions=[...]`` override; ``extra``: ``key=value`` fields added
+    to every one (``--solution-set``)."""
     common = 'carrier_phase=true, pseudorange_sigma_m=1.0'
     items = [
         '{name="GPS", sensors=["gnss"]}',
@@ -57,6 +60,8 @@ def _phase_solutions(uwb_sigma_m: float, bearing: bool = True) -> str:
     if bearing:
         items.append('{name="GPS-phase+UWB+Bearing", sensors=["gnss", "uwb", "bearing"], uwb_error_states=true, '
                      f'uwb_sigma_m={uwb_sigma_m}, ' + common + '}')
+    if extra:
+        items = [it[:-1] + ", " + ", ".join(extra) + "}" for it in items]
     return "solutions=[" + ", ".join(items) + "]"
 
 
@@ -119,7 +124,8 @@ def part_init_drive(args: argparse.Namespace, out: Path) -> tuple[pd.DataFrame, 
     rows, ttff_rows = [], []
     first = None
     for seed in args.seeds:
-        ov = [f"seed={seed}", f"sensors.uwb.profile=\"{args.uwb_profile}\"", _phase_solutions(args.uwb_sigma_m)]
+        ov = [f"seed={seed}", f"sensors.uwb.profile=\"{args.uwb_profile}\"",
+              _phase_solutions(args.uwb_sigma_m, extra=args.solution_set)]
         if args.quick:
             ov.append("duration_s=90")
         folder = _run(ov, out / "runs" / f"init_drive_seed{seed}", SCENARIO)
@@ -172,7 +178,7 @@ def part_degraded(args: argparse.Namespace, out: Path) -> tuple[pd.DataFrame, pd
             if t_sl is not None:
                 faults.append(f"{{kind=\"cycle_slip\", start_s={t_sl}, vehicles=[\"c1.1\", \"c1.2\"], size_cycles=3}}")
             tag = "start" if t0 == 0.0 else "init"
-            folder = _run(base + [f"seed={seed}", _phase_solutions(args.uwb_sigma_m, bearing=False),
+            folder = _run(base + [f"seed={seed}", _phase_solutions(args.uwb_sigma_m, bearing=False, extra=args.solution_set),
                                   "faults=[" + ", ".join(faults) + "]"], out / "runs" / f"degraded_{tag}_seed{seed}")
             e = pd.read_parquet(folder / "epochs.parquet")
             n_sat = int(e.loc[(e["t_s"] > t0 + 1.0) & (e["solution"] == "GPS"), "used_pr"].median())  # SD pseudoranges = satellites
@@ -280,12 +286,17 @@ def main(argv: list[str] | None = None) -> int:
     ap.add_argument("--parts", nargs="+", default=["init_drive", "degraded", "slips"],
                     choices=["init_drive", "degraded", "slips"])
     ap.add_argument("--quick", action="store_true", help="one seed, shorter runs (smoke test)")
+    ap.add_argument("--solution-set", nargs="+", default=[], metavar="KEY=VALUE",
+                    help="solution fields added to every solution of parts 1-2, e.g. gnss_cn0_mask_dbhz=41 "
+                         "or gnss_min_satellites=4 (TOML values)")
     args = ap.parse_args(argv)
+    args.solution_set = tuple(args.solution_set)
     if args.quick:
         args.seeds = args.seeds[:1]
     out: Path = args.out
     out.mkdir(parents=True, exist_ok=True)
-    md = [f"# Carrier phase (seeds {args.seeds}, UWB profile {args.uwb_profile})", ""]
+    md = [f"# Carrier phase (seeds {args.seeds}, UWB profile {args.uwb_profile}"
+          + (f"; every solution with {', '.join(args.solution_set)}" if args.solution_set else "") + ")", ""]
     if "init_drive" in args.parts:
         t1, ttff, first = part_init_drive(args, out)
         t1.to_csv(out / "init_drive.csv", index=False)

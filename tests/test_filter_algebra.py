@@ -277,6 +277,74 @@ def test_nonfinite_measurements_are_skipped_and_counted():
     assert np.all(np.isfinite(ekf.x)) and np.all(np.isfinite(ekf.P))
 
 
+def test_gnss_epoch_select_selects_every_per_satellite_field():
+    """``GnssEpoch.select`` keeps every (n,)-shaped field and error component aligned (a field
+    added later and forgotten there would fail here), and the scalars as they are."""
+    import dataclasses
+
+    cfg = FilterConfig()
+    g = simulate(SimScenario(n_vehicles=2, duration_s=0.1, bearing_vehicles=()), cfg, np.random.default_rng(1))[0].gnss["v1"]
+    g = replace(g, errors_m={"multipath": np.arange(g.n, dtype=float)})
+    keep = np.arange(g.n) % 2 == 0
+    sub = g.select(keep)
+    for f in dataclasses.fields(g):
+        a, b = getattr(g, f.name), getattr(sub, f.name)
+        if isinstance(a, np.ndarray):
+            np.testing.assert_array_equal(b, a[keep], err_msg=f.name)
+        elif f.name == "errors_m":
+            assert set(b) == set(a) and all(np.array_equal(b[k], a[k][keep]) for k in a)
+        else:
+            assert b == a, f.name
+    with pytest.raises(ValueError, match="shape"):
+        g.select(keep[:-1])
+
+
+def test_cn0_mask_leaves_out_signals_weak_at_either_receiver():
+    """``gnss_cn0_mask_dbhz``: an SD (pseudorange, Doppler) is formed only from signals at or
+    above the mask at *both* receivers. Every simulated signal has 45 dB-Hz; one satellite is
+    weakened to 30 dB-Hz at the follower, another at the lead. With a 40 dB-Hz mask neither
+    satellite gives an SD, every other one does, the two weak signals are counted per epoch,
+    and the estimate equals that of an unmasked filter given epochs without those two
+    satellites (what a mask means). A mask equal to the C/N0 (45) keeps every signal."""
+    cfg = FilterConfig()
+    scn = SimScenario(n_vehicles=2, duration_s=2.0, uwb=False, bearing_vehicles=())
+    eps = simulate(scn, cfg, np.random.default_rng(3))
+    prns = [int(p) for p in eps[0].gnss["v1"].prn]
+    weak_v, weak_l = prns[1], prns[4]
+
+    def weakened(gnss, drop=False):
+        out = {}
+        for v, g in gnss.items():
+            p = weak_v if v == "v1" else weak_l
+            weak = g.prn == p
+            out[v] = g.select(~weak) if drop else replace(g, cn0_dbhz=np.where(weak, 30.0, g.cn0_dbhz))
+        return out
+
+    def run(mask, drop=False, feed=None):
+        ekf = ClusterEkf(StateLayout.build(lead="lead", vehicles=["v1"]), replace(cfg, gnss_cn0_mask_dbhz=mask))
+        recs = []
+        for k, ep in enumerate(eps):
+            if k:
+                ekf.predict(scn.dt_s)
+            recs.append(list(ekf.update_gnss(weakened(ep.gnss, drop) if feed is None else feed(ep.gnss),
+                                             ep.lead_base_ecef_m)))
+        return ekf, recs
+
+    masked, recs = run(40.0)
+    for k, infos in enumerate(recs[1:], start=1):  # (epoch 0 initializes the follower)
+        sd = [i for i in infos if i.kind in ("sd_pseudorange", "sd_doppler")]
+        assert {i.prn for i in sd} == set(prns) - {weak_v, weak_l}, k
+        assert len([i for i in sd if i.kind == "sd_pseudorange"]) == len(prns) - 2
+    assert masked.counters["gnss_cn0_masked"] == 2 * len(eps)
+    dropped, _ = run(0.0, drop=True)
+    np.testing.assert_array_equal(masked.x, dropped.x)
+    np.testing.assert_array_equal(masked.P, dropped.P)
+    at_cn0, recs45 = run(45.0, feed=lambda gnss: gnss)
+    plain, recs0 = run(0.0, feed=lambda gnss: gnss)
+    assert recs45 == recs0 and "gnss_cn0_masked" not in at_cn0.counters
+    np.testing.assert_array_equal(at_cn0.x, plain.x)
+
+
 def test_uwb_inequality_constraint_lands_on_the_bound():
     """Thesis eq. 3.19: bias above max -> pseudo-measurement at min with variance
     P (max - min) / (x - max); gain P / (P + r) = (x - max) / (x - min) moves x exactly to max."""
@@ -343,3 +411,6 @@ def test_bad_configuration_is_a_user_error():
         MeasurementNoiseConfig(uwb_sigma_m=-1.0)
     with pytest.raises(UserError, match="uwb_pairs"):
         StateLayout.build(lead="L", vehicles=["A"], uwb_pairs=[("A", "X")])
+    for bad in (-1.0, float("nan")):
+        with pytest.raises(UserError, match="gnss_cn0_mask_dbhz"):
+            FilterConfig(gnss_cn0_mask_dbhz=bad)

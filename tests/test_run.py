@@ -232,6 +232,32 @@ def test_gnss_min_satellites_leaves_weak_gnss_out(tmp_path):
     assert "gnss_too_few_satellites" not in res.summary["filter_counters"]["all"]
 
 
+def test_cn0_mask_above_every_echo_leaves_no_echo_in_the_filter(tmp_path):
+    """An echo arrives ``echo_loss_db`` (8 dB) below its direct signal, whose C/N0 is at most
+    the zenith's 49 dB-Hz, so no echo is stronger than 41 dB-Hz. In the residential streets
+    (houses reflect) the unmasked solution uses echo-only SD pseudoranges and Dopplers that
+    its innovation test lets through; with ``gnss_cn0_mask_dbhz = 41.01`` the same run offers
+    the filter none (faulty = 0 for every SD kind) and it still estimates every epoch. A
+    user's mask outside [0, 60] dB-Hz is a one-line error naming the field."""
+    sc = load_scenario(None, [
+        'network.name="residential"', "clusters.0.vehicles=3", "duration_s=15.0",
+        'solutions=[{name="all", sensors=["gnss","uwb","bearing"]},'
+        ' {name="masked", sensors=["gnss","uwb","bearing"], gnss_cn0_mask_dbhz=41.01}]',
+    ])
+    res = run_scenario(sc, tmp_path / "r", quiet=True, replay=False)
+    stats = res.summary["statistics"]
+    every, masked = stats["all"]["measurements"], stats["masked"]["measurements"]
+    assert every["sd_pseudorange"]["faulty"] > 0 and every["sd_pseudorange"]["missed_faults"] > 0
+    sd_kinds = [k for k in masked if k.startswith("sd_")]
+    assert "sd_pseudorange" in sd_kinds and all(masked[k]["faulty"] == 0 for k in sd_kinds)
+    assert masked["sd_pseudorange"]["used"] > 0
+    assert all(v["availability"] == 1.0 for v in stats["masked"]["vehicles"].values())
+    assert res.summary["filter_counters"]["masked"]["gnss_cn0_masked"] > 0
+    assert "gnss_cn0_masked" not in res.summary["filter_counters"]["all"]
+    with pytest.raises(UserError, match="gnss_cn0_mask_dbhz"):
+        load_scenario(None, ['solutions=[{name="x", sensors=["gnss"], gnss_cn0_mask_dbhz=-3}]'])
+
+
 def test_height_aiding_sigma_none_means_off():
     """From Python, ``height_aiding_sigma_m=None`` (the filter's own "off") is the same as
     ``height_aiding=False``, and it survives the resolved-TOML round trip."""

@@ -165,6 +165,7 @@ def build_filter(sol: SolutionSection, lead: str, vehicles: Sequence[str], beari
         height_aiding_sigma_m=sol.height_aiding_sigma,
         antenna_heights_m=antenna_heights_m,
         gnss_min_satellites=sol.gnss_min_satellites,
+        gnss_cn0_mask_dbhz=sol.gnss_cn0_mask_dbhz,
         phase=PhaseConfig(
             phase_sigma_m=sol.phase_sigma_m,
             elevation_mask_rad=float(np.radians(sol.phase_elevation_mask_deg)),

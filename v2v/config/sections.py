@@ -118,6 +118,10 @@ class SolutionSection(_Model):
     # the epoch (as in an outage: height aiding, UWB and bearings carry it). 0: use every SD
     # (the paper's filter). 4 in a deep canyon: see the README's carrier-phase section.
     gnss_min_satellites: int = Field(default=0, ge=0)
+    # SNR mask of the SD pseudoranges and Dopplers: only signals with C/N0 >= this (dB-Hz) at
+    # both receivers. Echoes arrive echo_loss_db (8 dB) weaker than their direct signal, so 41
+    # (zenith 49 - 8) leaves none. 0: no mask (the paper's filter). See FilterConfig.
+    gnss_cn0_mask_dbhz: float = Field(default=0.0, ge=0.0, le=60.0)
     # Estimated-azimuth process model (azimuth = "estimated" only): azimuth = integral of a
     # first-order Gauss-Markov yaw rate (sigma, tau) plus a random walk. yaw_rate_sigma_deg_s = 0
     # drops the yaw-rate state (pure random walk). See v2v.estimation.process.

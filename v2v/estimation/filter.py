@@ -188,6 +188,16 @@ class FilterConfig:
         satellites, mostly echoes, the innovation test cannot single out the bad ones (no
         redundancy) and they pull the solution off. 0 (default): every SD is used, as in the
         paper's filter.
+    gnss_cn0_mask_dbhz : SD pseudoranges, pair SDs and SD Dopplers use only signals with
+        C/N0 >= this at both receivers (an SNR mask, as GNSS engines apply to code; counted
+        ``gnss_cn0_masked`` per receiver signal and epoch). Echoes arrive ``echo_loss_db``
+        (6-10 dB: reflection + LHCP rejection) below their direct signal, so a mask above
+        ``cn0_zenith_dbhz - echo_loss_db`` (49 - 8 = 41 dB-Hz by default) leaves none, at the
+        price of the weak direct signals (the default C/N0 model gives 40 dB-Hz at 18 deg
+        elevation). Applied before ``gnss_min_satellites`` and the "fewer than 4" height
+        aiding. The carrier phase still sees every signal (its slip detector needs the whole
+        epoch) but uses only the phases of accepted SD pseudoranges. 0 (default): no mask, as
+        in the paper's filter.
     antenna_heights_m : each vehicle's GNSS antenna height above the road (m), static
         installation data a vehicle can broadcast; the relative up of two antennas on a flat
         road is the difference (a truck's 3.9 m and a car's 1.55 m: 2.35 m, which "relative
@@ -212,6 +222,7 @@ class FilterConfig:
     height_aiding_sigma_m: float | None = None
     antenna_heights_m: Mapping[str, float] | None = None
     gnss_min_satellites: int = 0
+    gnss_cn0_mask_dbhz: float = 0.0
     clock_jump_detection: bool = True
     clock_reset_sigma_m: float = 100.0
     divergence_window: int = 50
@@ -229,6 +240,9 @@ class FilterConfig:
             b = getattr(self, name)
             if b is not None and not b[0] < b[1]:
                 raise UserError(f"needs min < max, got {b!r}", field=f"filter.{name}")
+        if not (math.isfinite(self.gnss_cn0_mask_dbhz) and self.gnss_cn0_mask_dbhz >= 0.0):
+            raise UserError(f"must be a finite C/N0 >= 0 dB-Hz, got {self.gnss_cn0_mask_dbhz!r}",
+                            field="filter.gnss_cn0_mask_dbhz", fix="e.g. 0 (no mask) or 41 (no echoes)")
         if self.divergence_window < 1 or not 0.0 < self.divergence_reject_fraction <= 1.0:
             raise UserError("needs window >= 1 and 0 < reject fraction <= 1", field="filter.divergence_window")
 
@@ -544,6 +558,9 @@ class ClusterFilterBase(ABC):
         matters). Vehicles outside the layout are ignored; uninitialized vehicles are
         initialized from this epoch when possible.
         """
+        all_epochs = epochs  # (the carrier phase's slip detector sees every signal)
+        if self.config.gnss_cn0_mask_dbhz > 0.0:
+            epochs = self._cn0_masked(epochs)
         geo = GnssGeometry(base_ecef_m=np.asarray(lead_base_ecef_m, dtype=float),
                            base_vel_ecef_mps=np.zeros(3) if lead_base_vel_ecef_mps is None
                            else np.asarray(lead_base_vel_ecef_mps, dtype=float))
@@ -626,8 +643,22 @@ class ClusterFilterBase(ABC):
             if weak:
                 infos += self.update_height_aiding(self.config.height_aiding_sigma_m, weak)
         if self.config.phase is not None:
-            infos += self._update_phase(epochs, lead_ep, geo, code_ok)
+            infos += self._update_phase(all_epochs, all_epochs.get(lay.lead), geo, code_ok)
         return infos
+
+    def _cn0_masked(self, epochs: dict[str, GnssEpoch]) -> dict[str, GnssEpoch]:
+        """Each receiver's epoch without its signals below ``config.gnss_cn0_mask_dbhz``
+        (counted ``gnss_cn0_masked``); epochs with none below are passed on as they are."""
+        mask = self.config.gnss_cn0_mask_dbhz
+        out: dict[str, GnssEpoch] = {}
+        for v, ep in epochs.items():
+            keep = np.asarray(ep.cn0_dbhz, dtype=float) >= mask  # (NaN C/N0: masked)
+            n_drop = ep.n - int(np.count_nonzero(keep))
+            if n_drop:
+                self.counters["gnss_cn0_masked"] = self.counters.get("gnss_cn0_masked", 0) + n_drop
+                ep = ep.select(keep)
+            out[v] = ep
+        return out
 
     def gnss_unavailable(self) -> None:
         """No usable GNSS epoch in this output interval (an outage of everyone, or the lead

@@ -74,6 +74,21 @@ class GnssEpoch:
     def n(self) -> int:
         return int(self.prn.shape[0])
 
+    def select(self, keep: NDArray[np.bool_]) -> GnssEpoch:
+        """The signals where ``keep`` (bool, (n,)) is True, every per-satellite field (the
+        errors included) selected alike; ``t_s`` and ``vehicle_id`` unchanged."""
+        k = np.asarray(keep, dtype=bool)
+        if k.shape != (self.n,):
+            raise ValueError(f"keep must be a bool array of shape ({self.n},), got {k.shape}")
+        return GnssEpoch(
+            t_s=self.t_s, vehicle_id=self.vehicle_id, prn=self.prn[k], pseudorange_m=self.pseudorange_m[k],
+            doppler_mps=self.doppler_mps[k], carrier_cycles=self.carrier_cycles[k], lock_time_s=self.lock_time_s[k],
+            cn0_dbhz=self.cn0_dbhz[k], sv_pos_ecef_m=self.sv_pos_ecef_m[k], sv_vel_ecef_mps=self.sv_vel_ecef_mps[k],
+            sv_clock_m=self.sv_clock_m[k], elevation_rad=self.elevation_rad[k], azimuth_rad=self.azimuth_rad[k],
+            los=self.los[k], true_range_m=self.true_range_m[k], ambiguity_cycles=self.ambiguity_cycles[k],
+            errors_m={name: v[k] for name, v in self.errors_m.items()},
+        )
+
 
 @dataclass(frozen=True, kw_only=True)
 class UwbRanges:
