@@ -7,10 +7,12 @@ BLAS and numba limited to one thread, so the numbers are single-core times measu
 one invocation. In that process the runs follow each other (libsumo: one simulation at a
 time): *cold*, the first run (replay off; it also loads the compiled kernels and pays the
 lazy imports: what a single ``v2v run`` pays), then ``--repeat`` pairs of *warm* runs (the
-steady state of a sweep worker), each pair one seed with the replay off and then on. Warm
-figures are the fastest of the repeats (the machine may be shared: the minimum is the least
-disturbed run), and the replay's share compares the fastest replay-on run with the fastest
-replay-off one of the same process. Per run: wall time and stage breakdown
+steady state of a sweep worker), each pair one seed with the replay off and on, back to back
+(off first in even pairs, on first in odd ones: the machine's speed drifts). Warm figures are
+the fastest of the repeats (the machine may be shared: the minimum is the least disturbed run);
+the replay's share is given twice: the fastest replay-on run against the fastest replay-off
+one of the same process, and the median over the pairs of each pair's share (robust to a
+disturbed run). Per run: wall time and stage breakdown
 (``summary.json`` ``wall_s``, ``timing_s``) and CPU time; per process: the start-up
 (interpreter + imports, before ``run_scenario``).
 
@@ -67,10 +69,12 @@ def one(scn, replay, tag):
 
 # cold: the first run of the process; warm: next seeds in the same process, replay off then on
 res["cold"] = one(sc, False, "cold")
-for k in range(repeat):
+for k in range(repeat):  # pair k: one seed, replay off then on (on then off for odd k: the machine drifts)
     scn = load_scenario(None, ov + [f"seed={sc.seed + 1 + k}"])
+    if replay_on and k % 2:
+        res["warm_on"].append(one(scn, True, f"on{k}"))
     res["warm_off"].append(one(scn, False, f"off{k}"))
-    if replay_on:
+    if replay_on and not k % 2:
         res["warm_on"].append(one(scn, True, f"on{k}"))
 print(json.dumps(res))
 """
@@ -78,8 +82,9 @@ print(json.dumps(res))
 
 def run_case(n: int, duration: float, replay_on: bool, repeat: int, out: Path) -> dict:
     """One fresh process: start-up (interpreter + imports), a cold run (compiled kernels
-    loaded, lazy imports paid), then ``repeat`` warm runs with the replay off (and each
-    followed by the same seed with the replay on); ``warm`` / ``warm_replay`` are the fastest."""
+    loaded, lazy imports paid), then ``repeat`` warm runs with the replay off (and each paired
+    with the same seed with the replay on, before it for odd pairs); ``warm`` / ``warm_replay``
+    are the fastest, ``replay_share_paired_median`` the median of the pairs' shares."""
     t0 = time.perf_counter()
     p = subprocess.run([sys.executable, "-c", CASE, str(n), "1" if replay_on else "0", str(out),
                         json.dumps(overrides(n, duration)), str(repeat)],
@@ -89,6 +94,9 @@ def run_case(n: int, duration: float, replay_on: bool, repeat: int, out: Path) -
     r["warm"] = min(r["warm_off"], key=lambda c: c["wall_s"])
     if r["warm_on"]:
         r["warm_replay"] = min(r["warm_on"], key=lambda c: c["wall_s"])
+        shares = sorted(1.0 - a["wall_s"] / b["wall_s"] for a, b in zip(r["warm_off"], r["warm_on"], strict=True))
+        m = len(shares)
+        r["replay_share_paired_median"] = shares[m // 2] if m % 2 else 0.5 * (shares[m // 2 - 1] + shares[m // 2])
     return r
 
 
@@ -150,12 +158,16 @@ def main(argv: list[str] | None = None) -> int:
         print("\nreal-time factor (simulated s / wall s of the run), one core; cold = first run of a fresh")
         print(f"process (kernels loaded, lazy imports), warm = fastest of {max(1, args.repeat)} further runs in the "
               "same process (a sweep worker):")
-        print(f"{'N':>4s} {'off, cold':>10s} {'off, warm':>10s} {'on, warm':>9s} {'replay share (warm)':>20s}")
+        print(f"{'N':>4s} {'off, cold':>10s} {'off, warm':>10s} {'on, warm':>9s} {'replay share':>13s} "
+              f"{'paired median':>14s}")
         for r in rows:
             on = r.get("warm_replay")
-            share = f"{1.0 - r['warm']['wall_s'] / on['wall_s']:20.1%}" if on else f"{'-':>20s}"
+            share = f"{1.0 - r['warm']['wall_s'] / on['wall_s']:13.1%}" if on else f"{'-':>13s}"
+            paired = f"{r['replay_share_paired_median']:14.1%}" if on else f"{'-':>14s}"
             rtf_on = f"{on['rtf']:9.1f}" if on else f"{'-':>9s}"
-            print(f"{r['n']:4d} {r['cold']['rtf']:10.1f} {r['warm']['rtf']:10.1f} {rtf_on} {share}")
+            print(f"{r['n']:4d} {r['cold']['rtf']:10.1f} {r['warm']['rtf']:10.1f} {rtf_on} {share} {paired}")
+        print("replay share: 1 - fastest off / fastest on; paired median: the median over the seeds of "
+              "1 - off / on of the same seed (each pair run back to back, in alternating order)")
     if mc:
         print(f"\nMonte Carlo: {mc['runs']} runs x {mc['duration_s']:.0f} s, N = 3, {mc['workers']} worker processes: "
               f"{mc['wall_s']:.1f} s wall ({mc['failed']} failed; mean run wall {mc['per_run_wall_mean_s']:.2f} s)")
