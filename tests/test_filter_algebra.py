@@ -345,6 +345,35 @@ def test_cn0_mask_leaves_out_signals_weak_at_either_receiver():
     np.testing.assert_array_equal(at_cn0.x, plain.x)
 
 
+def test_cn0_mask_counts_only_strong_satellites_for_the_weak_epoch_height_aiding():
+    """With fewer than 4 SD pseudoranges an epoch cannot fix the relative position, so height
+    aiding is added ("relative up"); with a C/N0 mask the count is of the signals that pass it.
+    After 1 s of full-strength epochs, all but 3 of the follower's satellites drop to 30 dB-Hz:
+    with a 40 dB-Hz mask each such epoch has 3 SD pseudoranges and one height-aiding update of
+    the follower; without the mask it has every SD and no height aiding."""
+    cfg = FilterConfig(height_aiding_sigma_m=1.0)
+    scn = SimScenario(n_vehicles=2, duration_s=2.0, uwb=False, bearing_vehicles=())
+    eps = simulate(scn, cfg, np.random.default_rng(4))
+    strong = set(int(p) for p in eps[0].gnss["v1"].prn[:3])
+
+    def weakened(gnss):
+        g = gnss["v1"]
+        weak = ~np.isin(g.prn, list(strong))
+        return {**gnss, "v1": replace(g, cn0_dbhz=np.where(weak, 30.0, g.cn0_dbhz))}
+
+    for mask, n_pr, n_height in ((40.0, 3, 1), (0.0, len(eps[0].gnss["v1"].prn), 0)):
+        ekf = ClusterEkf(StateLayout.build(lead="lead", vehicles=["v1"]), replace(cfg, gnss_cn0_mask_dbhz=mask))
+        for k, ep in enumerate(eps):
+            if k:
+                ekf.predict(scn.dt_s)
+            late = ep.t_s > 1.0 + 1e-9
+            infos = list(ekf.update_gnss(weakened(ep.gnss) if late else ep.gnss, ep.lead_base_ecef_m))
+            if late:
+                assert len([i for i in infos if i.kind == "sd_pseudorange"]) == n_pr, (mask, k)
+                assert len([i for i in infos if i.kind == "height_aiding" and i.vehicles == ("v1",)]) == n_height
+                assert ekf.gnss_weak["v1"] == (n_height == 1)
+
+
 def test_uwb_inequality_constraint_lands_on_the_bound():
     """Thesis eq. 3.19: bias above max -> pseudo-measurement at min with variance
     P (max - min) / (x - max); gain P / (P + r) = (x - max) / (x - min) moves x exactly to max."""
