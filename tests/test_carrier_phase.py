@@ -9,6 +9,8 @@ be as good as its own covariance says. Thresholds are explained where they are u
 
 from __future__ import annotations
 
+from dataclasses import replace
+
 import numpy as np
 import pytest
 
@@ -210,3 +212,29 @@ def test_engines_agree_with_carrier_phase():
         np.testing.assert_array_less(np.abs(prod.P - ref.P), 1e-9 * (np.abs(ref.P) + np.outer(sd, sd)) + 1e-300)
     assert prod.counters == ref.counters
     assert prod.counters.get("ambiguity_fix_applied", 0) >= 2 and prod.counters["phase_slip"] == 1
+
+
+def test_cn0_mask_drops_the_phase_of_a_masked_satellite_without_a_false_slip():
+    """With ``gnss_cn0_mask_dbhz`` a satellite below the mask gives no SD pseudorange, so its
+    phase is not used either: its ambiguity is dropped (``phase_lost``) and added afresh when
+    it is back. Masked for longer than the slip detector's gap limit (``max_gap_s``), it is
+    not reported as a slip (``phase_slip``): it was lost, not slipped."""
+    cfg = replace(CFG, gnss_cn0_mask_dbhz=40.0)
+    scn = SimScenario(n_vehicles=3, duration_s=4.0, uwb=False, bearing_vehicles=())
+    eps = simulate(scn, cfg, np.random.default_rng(2))
+    prn = int(eps[0].gnss["v1"].prn[2])
+    t0, t1 = 1.0, 1.0 + 2.0 * PhaseConfig().max_gap_s + 0.5
+    ekf = ClusterEkf(StateLayout.build(lead="lead", vehicles=list(FOLLOWERS)), cfg)
+    for k, ep in enumerate(eps):
+        if k:
+            ekf.predict(scn.dt_s)
+        gnss = ep.gnss
+        if t0 <= ep.t_s < t1:
+            g = gnss["v1"]
+            gnss = {**gnss, "v1": replace(g, cn0_dbhz=np.where(g.prn == prn, 30.0, g.cn0_dbhz))}
+        infos = ekf.update_gnss(gnss, ep.lead_base_ecef_m)
+        if t0 + 1e-9 < ep.t_s < t1:
+            assert not [i for i in infos if i.kind == "sd_phase" and i.vehicles[0] == "v1" and i.prn == prn]
+    assert ekf.counters.get("phase_lost", 0) >= 1
+    assert "phase_slip" not in ekf.counters
+    assert ("v1", prn) in ekf._amb_since  # back, with a fresh ambiguity

@@ -440,6 +440,6 @@ def test_bad_configuration_is_a_user_error():
         MeasurementNoiseConfig(uwb_sigma_m=-1.0)
     with pytest.raises(UserError, match="uwb_pairs"):
         StateLayout.build(lead="L", vehicles=["A"], uwb_pairs=[("A", "X")])
-    for bad in (-1.0, float("nan")):
+    for bad in (-1.0, float("nan"), "41", None, True):
         with pytest.raises(UserError, match="gnss_cn0_mask_dbhz"):
             FilterConfig(gnss_cn0_mask_dbhz=bad)

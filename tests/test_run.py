@@ -236,13 +236,13 @@ def test_cn0_mask_above_every_echo_leaves_no_echo_in_the_filter(tmp_path):
     """An echo arrives ``echo_loss_db`` (8 dB) below its direct signal, whose C/N0 is at most
     the zenith's 49 dB-Hz, so no echo is stronger than 41 dB-Hz. In the residential streets
     (houses reflect) the unmasked solution uses echo-only SD pseudoranges and Dopplers that
-    its innovation test lets through; with ``gnss_cn0_mask_dbhz = 41.01`` the same run offers
-    the filter none (faulty = 0 for every SD kind) and it still estimates every epoch. A
+    its innovation test lets through; with ``gnss_cn0_mask_dbhz = 41`` (an echo reaches exactly
+    41 only from a satellite at 90 deg elevation) the same run offers the filter none (faulty = 0 for every SD kind) and it still estimates every epoch. A
     user's mask outside [0, 60] dB-Hz is a one-line error naming the field."""
     sc = load_scenario(None, [
         'network.name="residential"', "clusters.0.vehicles=3", "duration_s=15.0",
         'solutions=[{name="all", sensors=["gnss","uwb","bearing"]},'
-        ' {name="masked", sensors=["gnss","uwb","bearing"], gnss_cn0_mask_dbhz=41.01}]',
+        ' {name="masked", sensors=["gnss","uwb","bearing"], gnss_cn0_mask_dbhz=41}]',
     ])
     res = run_scenario(sc, tmp_path / "r", quiet=True, replay=False)
     stats = res.summary["statistics"]

@@ -196,8 +196,11 @@ class FilterConfig:
         price of the weak direct signals (the default C/N0 model gives 40 dB-Hz at 18 deg
         elevation). Applied before ``gnss_min_satellites`` and the "fewer than 4" height
         aiding. The carrier phase still sees every signal (its slip detector needs the whole
-        epoch) but uses only the phases of accepted SD pseudoranges. 0 (default): no mask, as
-        in the paper's filter.
+        epoch) but uses only the phases of accepted SD pseudoranges: a masked satellite's
+        ambiguity is dropped (counted ``phase_lost``) and starts afresh when it is back above
+        the mask. Foliage-attenuated direct signals are masked at any elevation. A satellite
+        masked only at the lead can still give an SD between two followers. 0 (default): no
+        mask, as in the paper's filter.
     antenna_heights_m : each vehicle's GNSS antenna height above the road (m), static
         installation data a vehicle can broadcast; the relative up of two antennas on a flat
         road is the difference (a truck's 3.9 m and a car's 1.55 m: 2.35 m, which "relative
@@ -240,7 +243,8 @@ class FilterConfig:
             b = getattr(self, name)
             if b is not None and not b[0] < b[1]:
                 raise UserError(f"needs min < max, got {b!r}", field=f"filter.{name}")
-        if not (math.isfinite(self.gnss_cn0_mask_dbhz) and self.gnss_cn0_mask_dbhz >= 0.0):
+        mask = self.gnss_cn0_mask_dbhz
+        if isinstance(mask, bool) or not isinstance(mask, (int, float)) or not (math.isfinite(mask) and mask >= 0.0):
             raise UserError(f"must be a finite C/N0 >= 0 dB-Hz, got {self.gnss_cn0_mask_dbhz!r}",
                             field="filter.gnss_cn0_mask_dbhz", fix="e.g. 0 (no mask) or 41 (no echoes)")
         if self.divergence_window < 1 or not 0.0 < self.divergence_reject_fraction <= 1.0:
@@ -1015,7 +1019,8 @@ class ClusterFilterBase(ABC):
 
     def _pair_sds(self, epochs: dict[str, GnssEpoch], lead_ep: GnssEpoch | None,
                   geo: GnssGeometry) -> list[UpdateInfo]:
-        """SDs between two non-lead vehicles for satellites the lead does not see."""
+        """SDs between two non-lead vehicles for satellites the lead does not see (or, with
+        ``gnss_cn0_mask_dbhz``, sees below the mask)."""
         lay = self.layout
         ready = [v for v in lay.vehicles if self._vehicle_ready[v] and v in epochs]
         if len(ready) < 2:
