@@ -32,6 +32,7 @@ from __future__ import annotations
 import argparse
 import json
 import os
+import statistics
 import subprocess
 import sys
 import tempfile
@@ -94,9 +95,8 @@ def run_case(n: int, duration: float, replay_on: bool, repeat: int, out: Path) -
     r["warm"] = min(r["warm_off"], key=lambda c: c["wall_s"])
     if r["warm_on"]:
         r["warm_replay"] = min(r["warm_on"], key=lambda c: c["wall_s"])
-        shares = sorted(1.0 - a["wall_s"] / b["wall_s"] for a, b in zip(r["warm_off"], r["warm_on"], strict=True))
-        m = len(shares)
-        r["replay_share_paired_median"] = shares[m // 2] if m % 2 else 0.5 * (shares[m // 2 - 1] + shares[m // 2])
+        r["replay_share_paired_median"] = statistics.median(
+            1.0 - a["wall_s"] / b["wall_s"] for a, b in zip(r["warm_off"], r["warm_on"], strict=True))
     return r
 
 

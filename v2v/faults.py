@@ -133,7 +133,7 @@ def apply_gnss_faults(epochs: list[tuple[float, dict[str, GnssEpoch]]], faults: 
                 if f.kind == "satellites_lost":
                     m = ~np.isin(ep.prn, f.prns)
                     log.add(i, f.kind, int((~m).sum()))
-                    ep = _take(ep, m)
+                    ep = ep.select(m)
                 elif f.kind == "clock_jump":
                     # Common to every satellite of the receiver: a clock error (the filter's clock
                     # state may absorb it), recorded apart from measurement faults.
@@ -169,13 +169,6 @@ def apply_gnss_faults(epochs: list[tuple[float, dict[str, GnssEpoch]]], faults: 
                 new[v] = ep
         out.append((t, new))
     return out
-
-
-def _take(ep: GnssEpoch, m: np.ndarray) -> GnssEpoch:
-    arrays = {k: getattr(ep, k)[m] for k in (
-        "prn", "pseudorange_m", "doppler_mps", "carrier_cycles", "lock_time_s", "cn0_dbhz", "sv_pos_ecef_m",
-        "sv_vel_ecef_mps", "sv_clock_m", "elevation_rad", "azimuth_rad", "los", "true_range_m", "ambiguity_cycles")}
-    return replace(ep, **arrays, errors_m={k: v[m] for k, v in ep.errors_m.items()})
 
 
 def apply_uwb_faults(uwb: UwbRanges | None, faults: list[FaultSection], rng: np.random.Generator,
