@@ -31,6 +31,7 @@ from v2v.viz.rerun_logger import (  # noqa: E402
     RerunReplayParams,
     ellipse_scale,
     extrude_footprints,
+    strips3d_arrow,
 )
 
 F32_ABS_M = 1e-5  # > 7.6e-6 m, float32 rounding of coordinates below 128 m (module docstring)
@@ -238,6 +239,19 @@ def test_static_world_is_static_and_building_mesh_is_the_prism(run):
     np.testing.assert_allclose(
         normals[tris[~roof, 0]], n_face, atol=1e-6
     )  # stored normals agree with winding
+
+
+@pytest.mark.parametrize("shape", [(5, 2, 3), (7, 37, 3), (0, 2, 3), (1, 1, 3)])
+def test_strips_arrow_is_what_rerun_builds_from_the_array(shape):
+    """The links' and ellipses' strips converted in one pass are the arrow array rerun's own
+    LineStrip3D conversion builds from the same (n, k, 3) float64 array: same type (so rerun
+    takes it as it is), same float32 points, same offsets; also for no strips."""
+    a = np.random.default_rng(7).normal(size=shape) * 1e3
+    ours = strips3d_arrow(a)
+    assert ours.type == rr.components.LineStrip3DBatch._ARROW_DATATYPE
+    assert rr.components.LineStrip3DBatch(ours).as_arrow_array().equals(rr.components.LineStrip3DBatch(a).as_arrow_array())
+    with pytest.raises(ValueError, match="n_points, 3"):
+        strips3d_arrow(a.reshape(-1, 3))
 
 
 def test_extrude_accepts_clockwise_and_closed_footprints():

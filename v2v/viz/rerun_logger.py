@@ -65,6 +65,7 @@ from dataclasses import dataclass
 from pathlib import Path
 
 import numpy as np
+import pyarrow as pa
 import rerun as rr
 import shapely
 from numpy.typing import ArrayLike, NDArray
@@ -347,6 +348,24 @@ def _offset_lines(xy: FloatArray, width_m: float) -> list[FloatArray]:
 
 # ---------------------------------------------------------------------------- scene buffer
 
+# rerun.components.LineStrip3D's arrow type (rerun-sdk 0.41): a list of non-null
+# FixedSizeList<float32, 3> points
+_VEC3_ARROW = pa.list_(pa.field("item", pa.float32(), nullable=False), 3)
+_STRIP3_ARROW = pa.list_(pa.field("item", _VEC3_ARROW, nullable=False))
+
+
+def strips3d_arrow(strips: NDArray[np.floating]) -> pa.Array:
+    """Line strips of equal length, ``(n_strips, n_points, 3)``, as the ``LineStrip3D``
+    arrow array rerun builds from that array (points cast to float32, offsets
+    ``n_points`` apart), without rerun's Python loop over the strips (~1 us a strip:
+    links and ellipses are tens of thousands of strips a minute). rerun uses an arrow array
+    of its component's type as it is."""
+    if strips.ndim != 3 or strips.shape[2] != 3:
+        raise ValueError(f"strips must be (n_strips, n_points, 3), got shape {strips.shape}")
+    n, k, _ = strips.shape
+    points = pa.FixedSizeListArray.from_arrays(np.ascontiguousarray(strips, dtype=np.float32).reshape(-1), type=_VEC3_ARROW)
+    return pa.ListArray.from_arrays(np.arange(0, (n + 1) * k, k, dtype=np.int32), points, type=_STRIP3_ARROW)
+
 
 class _SceneRows:
     """Rows of one archetype on one entity path, waiting for ``send_columns``.
@@ -409,6 +428,8 @@ class _SceneRows:
             for name, rows in self.per_instance.items():
                 if rows and isinstance(rows[0], np.ndarray):
                     merged[name] = np.concatenate(rows)
+                    if name == "strips" and self.archetype is rr.LineStrips3D:
+                        merged[name] = strips3d_arrow(merged[name])
                 else:  # lists (labels, line strips)
                     merged[name] = [x for row in rows for x in row]
             cols.extend(self.archetype.columns(**merged).partition(np.asarray(self.lengths)))
