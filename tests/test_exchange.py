@@ -41,3 +41,49 @@ def test_loss_rate_within_binomial_bounds():
         ex.send(Message(i * 0.1, "a", "gnss", None))
     lo, hi = stats.binom.interval(0.999, n, p)  # false failure 0.1 %
     assert lo <= ex.stats.lost <= hi
+
+
+def _bearings(t, a, b):
+    from v2v.sensors.measurements import Bearings
+
+    k = np.arange(len(t), dtype=float)
+    return Bearings(t_s=np.asarray(t, dtype=float), a=tuple(a), b=tuple(b), bearing_rad=k, true_bearing_rad=k,
+                    azimuth_reported_rad=k, true_azimuth_rad=k, los=np.ones(len(t), dtype=bool))
+
+
+def test_bearings_travel_as_one_packet_per_vehicle_and_time_tag():
+    """The exchange model: a vehicle's bearings of one instant are one message, delivered or
+    lost as a whole; the filter gets each time tag's delivered bearings in measurement
+    order. Hand-built: 3 vehicles, 2 time tags, rows interleaved (4 packets from "a" and
+    "b", 2 from the lead, which need no radio)."""
+    from v2v.pipeline import ExchangeStream
+
+    t = [0.1, 0.1, 0.1, 0.2, 0.1, 0.2, 0.2, 0.2, 0.1]
+    a = ["a", "b", "a", "lead", "lead", "a", "b", "a", "b"]
+    b = ["b", "a", "lead", "a", "b", "lead", "lead", "b", "lead"]
+    xs = ExchangeStream(V2VExchange(ExchangeConfig(), "lead", np.random.default_rng(0)), lambda ep: None)
+    xs.add_bearings(_bearings(t, a, b))
+    packets = [(m.t_s, m.sender, list(m.payload[1])) for _, _, _, m in xs._msgs]
+    assert packets == [(0.1, "a", [0, 2]), (0.1, "b", [1, 8]), (0.2, "lead", [3]), (0.1, "lead", [4]),
+                       (0.2, "a", [5, 7]), (0.2, "b", [6])]  # first occurrence order, rows in order
+    for tk in (0.1, 0.2):
+        xs.add_output_time(tk)
+    events = xs.advance(np.inf, final=True)
+    assert [e.t_s for e in events] == [0.1, 0.2]
+    assert [e.bearings.bearing_rad.tolist() for e in events] == [[0, 1, 2, 4, 8], [3, 5, 6, 7]]
+    assert [list(zip(e.bearings.a, e.bearings.b, strict=True)) for e in events] == [
+        [("a", "b"), ("b", "a"), ("a", "lead"), ("lead", "b"), ("b", "lead")],
+        [("lead", "a"), ("a", "lead"), ("b", "lead"), ("a", "b")]]
+    assert xs.exchange.stats.sent == 4  # the lead's two packets are on board
+
+
+def test_lost_bearing_packet_takes_all_its_bearings():
+    """Loss probability 1 for every radio message: only the lead's own bearings arrive."""
+    from v2v.pipeline import ExchangeStream
+
+    xs = ExchangeStream(V2VExchange(ExchangeConfig(loss_probability=1.0), "lead", np.random.default_rng(0)),
+                        lambda ep: None)
+    xs.add_bearings(_bearings([0.1, 0.1, 0.1], ["a", "lead", "a"], ["lead", "a", "b"]))
+    xs.add_output_time(0.1)
+    (ev,) = xs.advance(np.inf, final=True)
+    assert ev.bearings.a == ("lead",) and xs.exchange.stats.lost == 1

@@ -15,6 +15,7 @@ import itertools
 from collections import Counter
 from collections.abc import Callable, Iterable, Sequence
 from dataclasses import dataclass, field
+from operator import itemgetter
 from pathlib import Path
 from typing import Any
 
@@ -227,9 +228,17 @@ class Event:
 _KIND_RANK = {"gnss": 0, "uwb": 1, "bearing": 2}
 
 
+def _take(seq: tuple[str, ...], idx: list[int]) -> tuple[str, ...]:
+    """``tuple(seq[i] for i in idx)`` (one C-level gather)."""
+    if len(idx) > 1:
+        return itemgetter(*idx)(seq)
+    return (seq[idx[0]],) if idx else ()
+
+
 def _subset_bearings(b: Bearings, idx: np.ndarray) -> Bearings:
+    ii = np.asarray(idx, dtype=np.intp).tolist()
     return Bearings(
-        t_s=b.t_s[idx], a=tuple(b.a[i] for i in idx), b=tuple(b.b[i] for i in idx), bearing_rad=b.bearing_rad[idx],
+        t_s=b.t_s[idx], a=_take(b.a, ii), b=_take(b.b, ii), bearing_rad=b.bearing_rad[idx],
         true_bearing_rad=b.true_bearing_rad[idx], azimuth_reported_rad=b.azimuth_reported_rad[idx],
         true_azimuth_rad=b.true_azimuth_rad[idx], los=b.los[idx],
     )
@@ -301,11 +310,30 @@ class ExchangeStream:
         if bearings is None or bearings.n == 0:
             return
         t = np.asarray(bearings.t_s, dtype=float)
-        groups: dict[tuple[float, str], list[int]] = {}
-        for k, (tk, a) in enumerate(zip(t.tolist(), bearings.a, strict=True)):
-            groups.setdefault((tk, a), []).append(k)
-        for (tk, a), idx in groups.items():
-            self._add(tk, a, "bearing", (bearings, idx))
+        if not np.isfinite(t).all():  # (a NaN time tag is a group of its own: one packet per bearing)
+            groups: dict[tuple[float, str], list[int]] = {}
+            for k, (tk, a) in enumerate(zip(t.tolist(), bearings.a, strict=True)):
+                groups.setdefault((tk, a), []).append(k)
+            for (tk, a), idx in groups.items():
+                self._add(tk, a, "bearing", (bearings, idx))
+            return
+        # packets = (time tag, measuring vehicle) groups in order of first occurrence, each
+        # with its bearings' indices in measurement order (what a dict of lists gives)
+        names = list(dict.fromkeys(bearings.a))
+        code = {v: i for i, v in enumerate(names)}
+        ai = np.fromiter(map(code.__getitem__, bearings.a), dtype=np.int64, count=bearings.n)
+        _, ti = np.unique(t, return_inverse=True)
+        _, first, inv = np.unique(ti.reshape(-1) * len(names) + ai, return_index=True, return_inverse=True)
+        by_first = np.argsort(first, kind="stable")
+        rank = np.empty_like(by_first)
+        rank[by_first] = np.arange(len(by_first))
+        g = rank[inv.reshape(-1)]
+        members = np.argsort(g, kind="stable")
+        ends = np.cumsum(np.bincount(g, minlength=len(by_first))).tolist()
+        starts = [0, *ends[:-1]]
+        heads = first[by_first]
+        for k0, k1, h, tk in zip(starts, ends, heads.tolist(), t[heads].tolist(), strict=True):
+            self._add(tk, bearings.a[h], "bearing", (bearings, members[k0:k1]))
 
     def add_output_time(self, t_s: float) -> None:
         self._times.append(t_s)
