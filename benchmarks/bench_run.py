@@ -24,7 +24,9 @@ time of the whole study, start-up of the cluster included, is printed.
     .venv/bin/python benchmarks/bench_run.py [--sizes 3 10 20 40] [--duration 60] [--repeat 3] [--out DIR]
     .venv/bin/python benchmarks/bench_run.py --sizes --mc-runs 100     # Monte Carlo only
 
-Prints tables; nothing is asserted. The machine may be shared: compare CPU and wall.
+Prints tables; nothing is asserted. The machine may be shared: compare CPU and wall. A
+machine reference (a fixed pure-Python loop and a fixed matrix product, timed before and
+after) is printed too: the same VM has run them up to 2.5x slower on some days.
 """
 
 from __future__ import annotations
@@ -100,6 +102,40 @@ def run_case(n: int, duration: float, replay_on: bool, repeat: int, out: Path) -
     return r
 
 
+REFERENCE = r"""
+import json, time
+import numpy as np
+t = time.perf_counter()
+s = 0
+for i in range(10_000_000):
+    s += i
+py_s = time.perf_counter() - t
+a = np.random.default_rng(0).normal(size=(156, 156))
+b = a.copy()
+t = time.perf_counter()
+for _ in range(2000):
+    b = a @ b * 1e-2
+blas_s = time.perf_counter() - t
+print(json.dumps({"python_loop_s": py_s, "matmul_s": blas_s}))
+"""
+
+
+def machine_reference() -> dict:
+    """Two fixed workloads, the same code every day, in a fresh one-thread process: 10^7
+    pure-Python integer additions (what the interpreter-bound part of a run scales with) and
+    2000 products of 156 x 156 float64 matrices (BLAS, one thread: the N = 20 filter's
+    covariance updates are this kind of work). Printed before and after the cases, so runs
+    on different days (or a machine that slows down midway) can be compared."""
+    p = subprocess.run([sys.executable, "-c", REFERENCE], capture_output=True, text=True, check=True,
+                       env={**os.environ, **ONE_THREAD})
+    return json.loads(p.stdout.strip().splitlines()[-1])
+
+
+def _print_reference(tag: str, ref: dict) -> None:
+    print(f"machine reference ({tag}): 10^7 Python additions {ref['python_loop_s']:.2f} s, "
+          f"2000 x (156 x 156) matmul {ref['matmul_s']:.2f} s", flush=True)
+
+
 def run_monte_carlo(n_runs: int, duration: float, workers: int, out: Path) -> dict:
     """``n_runs`` seeds of the N = 3 case through :func:`v2v.sweep.run_study`."""
     os.environ.update(ONE_THREAD)  # inherited by the LocalCluster's worker processes
@@ -133,6 +169,8 @@ def main(argv: list[str] | None = None) -> int:
     args = ap.parse_args(argv)
     rows = []
     mc = None
+    refs = {"before": machine_reference()}
+    _print_reference("before", refs["before"])
     with tempfile.TemporaryDirectory() as tmp:
         for n in args.sizes:
             r = run_case(n, args.duration, not args.no_replay_on, max(1, args.repeat), Path(tmp) / f"n{n}")
@@ -154,6 +192,8 @@ def main(argv: list[str] | None = None) -> int:
             rows.append(r)
         if args.mc_runs:
             mc = run_monte_carlo(args.mc_runs, args.mc_duration, args.mc_workers, Path(tmp))
+    refs["after"] = machine_reference()
+    _print_reference("after", refs["after"])
     if rows:
         print("\nreal-time factor (simulated s / wall s of the run), one core; cold = first run of a fresh")
         print(f"process (kernels loaded, lazy imports), warm = fastest of {max(1, args.repeat)} further runs in the "
@@ -173,7 +213,7 @@ def main(argv: list[str] | None = None) -> int:
               f"{mc['wall_s']:.1f} s wall ({mc['failed']} failed; mean run wall {mc['per_run_wall_mean_s']:.2f} s)")
     if args.out:
         args.out.mkdir(parents=True, exist_ok=True)
-        (args.out / "bench_run.json").write_text(json.dumps({"cases": rows, "monte_carlo": mc}, indent=2))
+        (args.out / "bench_run.json").write_text(json.dumps({"cases": rows, "monte_carlo": mc, "machine_reference": refs}, indent=2))
     return 0
 
 
