@@ -55,7 +55,8 @@ def test_bearings_travel_as_one_packet_per_vehicle_and_time_tag():
     """The exchange model: a vehicle's bearings of one instant are one message, delivered or
     lost as a whole; the filter gets each time tag's delivered bearings in measurement
     order. Hand-built: 3 vehicles, 2 time tags, rows interleaved (4 packets from "a" and
-    "b", 2 from the lead, which need no radio)."""
+    "b", 2 from the lead, which need no radio). The packets' send order (first occurrence)
+    is checked too: it decides which loss draw each packet gets, i.e. reproducibility."""
     from v2v.pipeline import ExchangeStream
 
     t = [0.1, 0.1, 0.1, 0.2, 0.1, 0.2, 0.2, 0.2, 0.1]

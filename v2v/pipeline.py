@@ -310,6 +310,8 @@ class ExchangeStream:
         if bearings is None or bearings.n == 0:
             return
         t = np.asarray(bearings.t_s, dtype=float)
+        if not (len(t) == len(bearings.a) == bearings.n):
+            raise ValueError(f"bearings: {len(t)} time tags, {len(bearings.a)} measuring vehicles, {bearings.n} bearings")
         if not np.isfinite(t).all():  # (a NaN time tag is a group of its own: one packet per bearing)
             groups: dict[tuple[float, str], list[int]] = {}
             for k, (tk, a) in enumerate(zip(t.tolist(), bearings.a, strict=True)):
