@@ -427,9 +427,8 @@ class _SceneRows:
             merged: dict[str, object] = {}
             for name, rows in self.per_instance.items():
                 if rows and isinstance(rows[0], np.ndarray):
-                    merged[name] = np.concatenate(rows)
-                    if name == "strips" and self.archetype is rr.LineStrips3D:
-                        merged[name] = strips3d_arrow(merged[name])
+                    cat = np.concatenate(rows)
+                    merged[name] = strips3d_arrow(cat) if name == "strips" and self.archetype is rr.LineStrips3D else cat
                 else:  # lists (labels, line strips)
                     merged[name] = [x for row in rows for x in row]
             cols.extend(self.archetype.columns(**merged).partition(np.asarray(self.lengths)))
