@@ -235,9 +235,7 @@ def apply_bearing_faults(b: Bearings | None, faults: list[FaultSection], rng: np
             val = np.where(hit, np.inf if np.isinf(f.size_m) else np.nan, val)
             log.add(i, f.kind, int(hit.sum()))
     idx = np.flatnonzero(keep)
-    return Bearings(t_s=b.t_s[idx], a=tuple(b.a[k] for k in idx), b=tuple(b.b[k] for k in idx), bearing_rad=val[idx],
-                    true_bearing_rad=b.true_bearing_rad[idx], azimuth_reported_rad=b.azimuth_reported_rad[idx],
-                    true_azimuth_rad=b.true_azimuth_rad[idx], los=b.los[idx])
+    return replace(b, bearing_rad=val).take(idx)
 
 
 def message_dropped(faults: list[FaultSection], sender: str, t_s: float) -> bool:

@@ -15,7 +15,6 @@ import itertools
 from collections import Counter
 from collections.abc import Callable, Iterable, Sequence
 from dataclasses import dataclass, field
-from operator import itemgetter
 from pathlib import Path
 from typing import Any
 
@@ -228,22 +227,6 @@ class Event:
 _KIND_RANK = {"gnss": 0, "uwb": 1, "bearing": 2}
 
 
-def _take(seq: tuple[str, ...], idx: list[int]) -> tuple[str, ...]:
-    """``tuple(seq[i] for i in idx)`` (one C-level gather)."""
-    if len(idx) > 1:
-        return itemgetter(*idx)(seq)
-    return (seq[idx[0]],) if idx else ()
-
-
-def _subset_bearings(b: Bearings, idx: np.ndarray) -> Bearings:
-    ii = np.asarray(idx, dtype=np.intp).tolist()
-    return Bearings(
-        t_s=b.t_s[idx], a=_take(b.a, ii), b=_take(b.b, ii), bearing_rad=b.bearing_rad[idx],
-        true_bearing_rad=b.true_bearing_rad[idx], azimuth_reported_rad=b.azimuth_reported_rad[idx],
-        true_azimuth_rad=b.true_azimuth_rad[idx], los=b.los[idx],
-    )
-
-
 def _bad_prns(eps: dict[str, GnssEpoch]) -> tuple[dict[str, frozenset[int]], dict[str, frozenset[int]]]:
     """Per vehicle: the PRNs (first occurrence in the epoch) that are NLOS or carry an injected
     fault, and the NLOS ones among them (:class:`Event` ``bad_prns``, ``nlos_prns``)."""
@@ -312,19 +295,12 @@ class ExchangeStream:
         t = np.asarray(bearings.t_s, dtype=float)
         if not (len(t) == len(bearings.a) == bearings.n):
             raise ValueError(f"bearings: {len(t)} time tags, {len(bearings.a)} measuring vehicles, {bearings.n} bearings")
-        if not np.isfinite(t).all():  # (a NaN time tag is a group of its own: one packet per bearing)
-            groups: dict[tuple[float, str], list[int]] = {}
-            for k, (tk, a) in enumerate(zip(t.tolist(), bearings.a, strict=True)):
-                groups.setdefault((tk, a), []).append(k)
-            for (tk, a), idx in groups.items():
-                self._add(tk, a, "bearing", (bearings, idx))
-            return
         # packets = (time tag, measuring vehicle) groups in order of first occurrence, each
         # with its bearings' indices in measurement order (what a dict of lists gives)
         names = list(dict.fromkeys(bearings.a))
         code = {v: i for i, v in enumerate(names)}
         ai = np.fromiter(map(code.__getitem__, bearings.a), dtype=np.int64, count=bearings.n)
-        _, ti = np.unique(t, return_inverse=True)
+        _, ti = np.unique(t, return_inverse=True, equal_nan=False)  # (each NaN time tag its own packet)
         _, first, inv = np.unique(ti.reshape(-1) * len(names) + ai, return_index=True, return_inverse=True)
         by_first = np.argsort(first, kind="stable")
         rank = np.empty_like(by_first)
@@ -400,9 +376,9 @@ class ExchangeStream:
                 if len(srcs) == 1:
                     src = group[0].payload[0]
                     idx = np.sort(np.concatenate([np.asarray(g.payload[1], dtype=np.intp) for g in group]))
-                    events.append(Event(m.t_s, "bearing", bearings=_subset_bearings(src, idx)))
+                    events.append(Event(m.t_s, "bearing", bearings=src.take(idx)))
                 else:  # one time tag split over two chunks' outputs (not expected: bearings are per step)
-                    parts = [_subset_bearings(g.payload[0], np.asarray(g.payload[1], dtype=np.intp)) for g in group]
+                    parts = [g.payload[0].take(g.payload[1]) for g in group]
                     events.append(Event(m.t_s, "bearing", bearings=_concat_bearings(parts)))
             j = k
         return events

@@ -704,11 +704,10 @@ class _ReplayState:
         bearings = (parts[0] if len(parts) == 1 else _concat_bearings(parts)) if parts else None
         self.prev = _log_truth_and_links(logger, steps, uwb, bearings, self.sky, self.prev)
         last = self.prev
-        from v2v.pipeline import _subset_bearings
         from v2v.sensors.uwb import select_ranges
 
         self.uwb = [select_ranges(uwb, uwb.t_s > last)] if uwb is not None else []
-        self.bearings = [_subset_bearings(bearings, np.flatnonzero(bearings.t_s > last))] if bearings is not None else []
+        self.bearings = [bearings.take(np.flatnonzero(bearings.t_s > last))] if bearings is not None else []
         self.sky = {key: v for key, v in self.sky.items() if key > round(last * 1e6)}
 
 

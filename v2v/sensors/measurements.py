@@ -12,9 +12,10 @@ scenario start (GPS time = scenario ``gps_start`` + ``t_s``).
 from __future__ import annotations
 
 from dataclasses import dataclass, field
+from operator import itemgetter
 
 import numpy as np
-from numpy.typing import NDArray
+from numpy.typing import ArrayLike, NDArray
 
 SPEED_OF_LIGHT_MPS = 299_792_458.0  # IS-GPS-200 value
 GPS_L1_HZ = 1_575.42e6
@@ -134,3 +135,22 @@ class Bearings:
     @property
     def n(self) -> int:
         return int(self.bearing_rad.shape[0])
+
+    def take(self, idx: ArrayLike) -> Bearings:
+        """The bearings at integer positions ``idx``, in that order, every field alike
+        (the vehicle names gathered in one C-level call: exchange packets take a few hundred
+        of a chunk's tens of thousands per epoch)."""
+        ii = np.asarray(idx, dtype=np.intp).reshape(-1)
+        pos = ii.tolist()
+        return Bearings(
+            t_s=self.t_s[ii], a=_gather(self.a, pos), b=_gather(self.b, pos), bearing_rad=self.bearing_rad[ii],
+            true_bearing_rad=self.true_bearing_rad[ii], azimuth_reported_rad=self.azimuth_reported_rad[ii],
+            true_azimuth_rad=self.true_azimuth_rad[ii], los=self.los[ii],
+        )
+
+
+def _gather(seq: tuple[str, ...], pos: list[int]) -> tuple[str, ...]:
+    """``tuple(seq[i] for i in pos)``."""
+    if len(pos) > 1:
+        return itemgetter(*pos)(seq)
+    return (seq[pos[0]],) if pos else ()
