@@ -435,7 +435,7 @@ class FixedSolution:
 def fixed_solution(
     x_float: ArrayLike,
     P: ArrayLike,
-    amb_idx: Sequence[int],
+    amb_idx: Sequence[int] | NDArray[np.integer],
     a_fixed: ArrayLike,
     *,
     transform: ArrayLike | None = None,

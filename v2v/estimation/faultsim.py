@@ -65,6 +65,7 @@ def blunder_trials(n_per_size: int, seed: int, *, sizes: tuple[float, ...] = BLU
         if k:
             ekf.predict(scn.dt_s)
         trial = copy.deepcopy(ekf) if k >= CONVERGE_EPOCHS else None
+        assert ep.gnss is not None  # GNSS at every epoch here (gnss_every = 1, no outage)
         infos = ekf.update_gnss(ep.gnss, ep.lead_base_ecef_m)
         if check is not None:
             check(ekf)

@@ -33,8 +33,9 @@ The lead vehicle has no vehicle block (it is the origin); it may have an azimuth
 
 from __future__ import annotations
 
-from collections.abc import Callable, Hashable
+from collections.abc import Callable, Hashable, Sequence
 from dataclasses import dataclass, field
+from typing import Any, cast
 
 import numpy as np
 from numpy.typing import NDArray
@@ -60,6 +61,9 @@ _DRIFT = 7
 
 BlockId = tuple[str, Hashable]
 Remap = Callable[[F64, F64], tuple[F64, F64]]
+# Blocks seen with the key type of their kind (str, (str, str) or (str, int)), which the type checker
+# cannot tell from the kind: for reading keys of a known kind.
+_KindKeyedBlocks = tuple[tuple[str, Any], ...]
 
 
 def uwb_pair_key(a: str, b: str) -> tuple[str, str]:
@@ -148,31 +152,33 @@ class StateLayout:
 
     @property
     def azimuth_vehicles(self) -> tuple[str, ...]:
-        return tuple(k for kind, k in self.blocks if kind == AZIMUTH)
+        return cast("tuple[str, ...]", tuple(k for kind, k in self.blocks if kind == AZIMUTH))
 
     @property
     def azimuth_rate_vehicles(self) -> tuple[str, ...]:
-        return tuple(k for kind, k in self.blocks if kind == AZIMUTH_RATE)
+        return cast("tuple[str, ...]", tuple(k for kind, k in self.blocks if kind == AZIMUTH_RATE))
 
     @property
     def uwb_pairs(self) -> tuple[tuple[str, str], ...]:
-        return tuple(k for kind, k in self.blocks if kind == UWB)
+        return cast("tuple[tuple[str, str], ...]", tuple(k for kind, k in self.blocks if kind == UWB))
 
     def ambiguity_keys(self, v: str | None = None) -> tuple[tuple[str, int], ...]:
         """``(vehicle, prn)`` keys of the SD ambiguity blocks (of ``v`` only when given), state order."""
-        return tuple(k for kind, k in self.blocks if kind == AMBIGUITY and (v is None or k[0] == v))
+        blocks = cast(_KindKeyedBlocks, self.blocks)
+        return tuple(k for kind, k in blocks if kind == AMBIGUITY and (v is None or k[0] == v))
 
     def ambiguity(self, v: str, prn: int) -> int:
         """SD carrier-phase ambiguity ``N_v - N_lead`` (cycles) of satellite ``prn``."""
         return self.block(AMBIGUITY, (v, int(prn))).start
 
-    def without_blocks(self, ids: list[BlockId] | tuple[BlockId, ...]) -> tuple[StateLayout, Remap]:
+    def without_blocks(self, ids: Sequence[BlockId]) -> tuple[StateLayout, Remap]:
         """Remove the listed blocks (marginalization: the other rows/columns of x, P are kept)."""
         drop = set(ids)
         new = StateLayout(lead=self.lead, blocks=tuple(b for b in self.blocks if b not in drop))
         return new, _make_remap(self, new, {})
 
-    def with_blocks(self, kind: str, keys: list[Hashable], *, mean: F64, variance: F64) -> tuple[StateLayout, Remap]:
+    def with_blocks(self, kind: str, keys: Sequence[Hashable], *, mean: F64, variance: F64
+                    ) -> tuple[StateLayout, Remap]:
         """Append several blocks of one single-state kind (e.g. ambiguities) in one remap;
         ``mean``/``variance`` (k,) per block, uncorrelated with the rest."""
         if BLOCK_SIZES[kind] != 1:
@@ -253,7 +259,7 @@ class StateLayout:
         covariance ``variance`` (scalar or per element), uncorrelated with the rest.
         """
         if kind == UWB:
-            key = uwb_pair_key(*key)
+            key = uwb_pair_key(*cast("tuple[str, str]", key))
         if self.has(kind, key):
             raise UserError(f"state block {kind}:{key!r} already exists", field="layout")
         blocks = list(self.blocks)
@@ -282,7 +288,7 @@ class StateLayout:
         """
         keep = tuple(
             (kind, key)
-            for kind, key in self.blocks
+            for kind, key in cast(_KindKeyedBlocks, self.blocks)
             if not (key == v and kind in (VEHICLE, AZIMUTH, AZIMUTH_RATE)) and not (kind == UWB and v in key)
             and not (kind == AMBIGUITY and key[0] == v)
         )

@@ -142,14 +142,15 @@ def simulate(scn: SimScenario, cfg: FilterConfig, rng: np.random.Generator) -> l
     pcfg, ncfg = cfg.process, cfg.noise
     origin = geodetic_to_ecef(scn.origin_lat_rad, scn.origin_lon_rad, scn.origin_h_m)
     r0 = ecef_to_enu_rotation(scn.origin_lat_rad, scn.origin_lon_rad)
-    sat_pos0, sat_vel = [], []
-    for az, el in scn.sat_az_el_rad:
-        u_enu = np.array([np.sin(az) * np.cos(el), np.cos(az) * np.cos(el), np.sin(el)])
-        perp = np.cross(u_enu, [0.0, 0.0, 1.0]) if abs(el) < 1.5 else np.array([1.0, 0.0, 0.0])
+    pos0_l: list[F64] = []
+    vel_l: list[F64] = []
+    for sat_az, sat_el in scn.sat_az_el_rad:
+        u_enu = np.array([np.sin(sat_az) * np.cos(sat_el), np.cos(sat_az) * np.cos(sat_el), np.sin(sat_el)])
+        perp = np.cross(u_enu, [0.0, 0.0, 1.0]) if abs(sat_el) < 1.5 else np.array([1.0, 0.0, 0.0])
         perp /= np.linalg.norm(perp)
-        sat_pos0.append(origin + (GPS_ORBIT_RANGE_M * u_enu) @ r0)
-        sat_vel.append((GPS_SAT_SPEED_MPS * perp) @ r0)
-    sat_pos0, sat_vel = np.array(sat_pos0), np.array(sat_vel)
+        pos0_l.append(origin + (GPS_ORBIT_RANGE_M * u_enu) @ r0)
+        vel_l.append((GPS_SAT_SPEED_MPS * perp) @ r0)
+    sat_pos0, sat_vel = np.array(pos0_l), np.array(vel_l)
     prns = np.arange(1, len(sat_pos0) + 1)
     blocked = np.isin(prns, scn.lead_blocked_prns)
 
@@ -297,12 +298,12 @@ def simulate(scn: SimScenario, cfg: FilterConfig, rng: np.random.Generator) -> l
             a_l, b_l, z_l, t_l = [], [], [], []
             for i, a in enumerate(ids):
                 for b in ids[i + 1:]:
-                    rho = float(range_m(rel_enu[a], rel_enu[b]))
+                    r_ab = float(range_m(rel_enu[a], rel_enu[b]))
                     bias, scale = uwb_bs.get(uwb_pair_key(a, b), (0.0, 0.0))
                     a_l.append(a)
                     b_l.append(b)
-                    t_l.append(rho)
-                    z_l.append((1.0 + scale) * rho + bias + ncfg.uwb_sigma_m * rng.standard_normal())
+                    t_l.append(r_ab)
+                    z_l.append((1.0 + scale) * r_ab + bias + ncfg.uwb_sigma_m * rng.standard_normal())
             m = len(z_l)
             uwb = UwbRanges(t_s=np.full(m, t), true_t_s=np.full(m, t), a=tuple(a_l), b=tuple(b_l),
                             range_m=np.array(z_l), true_range_m=np.array(t_l), los=np.ones(m, dtype=bool))

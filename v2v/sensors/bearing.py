@@ -161,6 +161,7 @@ class BearingStream:
         sel: list[tuple[TrafficStep, list[str], list[str]]] = []
         for st in steps:
             if s.rate_hz is not None:
+                assert self._t0 is not None  # set above from the first step
                 tick = math.floor((st.t_s - self._t0) * s.rate_hz + 1e-9)
                 if tick == self._last_tick:
                     continue
@@ -279,8 +280,8 @@ class _Run:
                     bval[i, j] = v
         w = s.azimuth_sigma_rad * z_az[..., -1]
         self.az_rep = (az + bval + w) % (2.0 * math.pi)  # (S, M)
-        i = np.arange(n_s * n_p)
-        self.link_meas = (i // n_p) * n_m + (i % n_p) // (len(self.ids) - 1)  # row of az_rep.reshape(-1)
+        link = np.arange(n_s * n_p)
+        self.link_meas = (link // n_p) * n_m + (link % n_p) // (len(self.ids) - 1)  # row of az_rep.reshape(-1)
         self.noise = s.sigma_rad * zz[:, n_m * (2 if bias_on else 1):].reshape(-1)
 
 

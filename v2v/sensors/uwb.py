@@ -65,7 +65,7 @@ import math
 from collections.abc import Mapping, Sequence
 from dataclasses import dataclass, fields
 from pathlib import Path
-from typing import Any
+from typing import Any, cast
 
 import numpy as np
 from numba import njit
@@ -641,7 +641,7 @@ class UwbNetwork:
 
     @staticmethod
     def _occlusion_filter(
-        cat: dict[str, F64],
+        cat: dict[str, NDArray[Any]],
         a_ids: NDArray[Any],
         b_ids: NDArray[Any],
         steps: Sequence[TrafficStep],
@@ -711,7 +711,7 @@ class _Clone:
         bg = type(g.bit_generator)()
         bg.state = g.bit_generator.state
         if advance:
-            bg.advance(advance)
+            cast(np.random.PCG64, bg).advance(advance)  # (default_rng's PCG64, as the docstring says)
         return np.random.Generator(bg)
 
 

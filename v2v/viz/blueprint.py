@@ -48,9 +48,14 @@ from __future__ import annotations
 
 import functools
 from collections.abc import Iterable, Sequence
+from typing import TYPE_CHECKING
 
 import rerun as rr
 import rerun.blueprint as rrb
+
+if TYPE_CHECKING:
+    from rerun.blueprint.api import VisualizerLike
+    from rerun.encodings import EntityPathLike
 
 TIMELINE = "sim_time"
 
@@ -130,8 +135,10 @@ def _error_view(title: str, solutions: Sequence[str], vehicle: str, key: str) ->
 
 def _series_view(name: str, pairs: Iterable[tuple[str, str]], series: Sequence[str], solutions: Sequence[str]) -> rrb.TimeSeriesView:
     contents = [f"+ {error_path(s, v, k)}" for s, v in pairs for k in series]
-    overrides = {error_path(s, v, k): rr.SeriesLines(names=f"{s} {v}", colors=_solution_rgb(solutions.index(s)))
-                 for s, v in pairs for k in series}
+    overrides: dict[EntityPathLike, VisualizerLike] = {
+        error_path(s, v, k): rr.SeriesLines(names=f"{s} {v}", colors=_solution_rgb(solutions.index(s)))
+        for s, v in pairs for k in series
+    }
     return rrb.TimeSeriesView(origin="/errors", contents=contents or ["- /**"], name=name, overrides=overrides,
                               plot_legend=rrb.PlotLegend(visible=False), **_whole_run())
 
@@ -172,16 +179,16 @@ def default_blueprint(
 def _default_blueprint(
     solutions: tuple[str, ...], vehicle_ids: tuple[str, ...], sky_vehicle_ids: tuple[str, ...], show_map: bool
 ) -> rrb.Blueprint:
-    solutions = list(solutions)
-    pairs = [(s, v) for s in solutions for v in vehicle_ids]
+    sols = list(solutions)
+    pairs = [(s, v) for s in sols for v in vehicle_ids]
     right: list[rrb.Container | rrb.View] = []
     if vehicle_ids:
-        right.append(rrb.Tabs(*[_error_view("Along-track error ±1σ [m]", solutions, v, "along") for v in vehicle_ids]))
-        right.append(rrb.Tabs(*[_error_view("Across-track error ±1σ [m]", solutions, v, "across") for v in vehicle_ids]))
+        right.append(rrb.Tabs(*[_error_view("Along-track error ±1σ [m]", sols, v, "along") for v in vehicle_ids]))
+        right.append(rrb.Tabs(*[_error_view("Across-track error ±1σ [m]", sols, v, "across") for v in vehicle_ids]))
     else:
-        right.append(_series_view("Along-track error ±1σ [m]", pairs, ("along", "along_sigma"), solutions))
-    right.append(_series_view("NEES (position, 3 dof)", pairs, ("nees",), solutions))
-    right.append(_series_view("Satellites used / rejections", pairs, ("n_sats", "rejections"), solutions))
+        right.append(_series_view("Along-track error ±1σ [m]", pairs, ("along", "along_sigma"), sols))
+    right.append(_series_view("NEES (position, 3 dof)", pairs, ("nees",), sols))
+    right.append(_series_view("Satellites used / rejections", pairs, ("n_sats", "rejections"), sols))
     bottom: list[rrb.Container | rrb.View] = []
     if sky_vehicle_ids:
         skies = [rrb.Spatial2DView(origin=sky_path(v), name=f"Sky {v}") for v in sky_vehicle_ids]

@@ -63,6 +63,7 @@ import tempfile
 from collections.abc import Mapping, Sequence
 from dataclasses import dataclass
 from pathlib import Path
+from typing import Any
 
 import numpy as np
 import pyarrow as pa
@@ -339,7 +340,7 @@ def sky_xy(az_rad: ArrayLike, el_rad: ArrayLike) -> FloatArray:
 
 def _offset_lines(xy: FloatArray, width_m: float) -> list[FloatArray]:
     line = shapely.LineString(xy)
-    out = []
+    out: list[FloatArray] = []
     for side in (0.5 * width_m, -0.5 * width_m):
         off = line.offset_curve(side)
         out.extend(np.asarray(g.coords) for g in shapely.get_parts(off) if not g.is_empty)
@@ -379,7 +380,7 @@ class _SceneRows:
 
     __slots__ = ("archetype", "key", "times", "lengths", "per_instance", "per_row")
 
-    def __init__(self, archetype: type, per_instance: Mapping[str, object], per_row: Mapping[str, object]):
+    def __init__(self, archetype: type[Any], per_instance: Mapping[str, object], per_row: Mapping[str, object]):
         self.archetype = archetype
         self.key = (archetype, tuple(per_instance), tuple(per_row))
         self.times: list[float] = []
@@ -679,7 +680,8 @@ class RerunReplayLogger(ReplayLogger):
                 times,
                 lengths,
                 {"positions": latlon, "colors": colors},
-                {"radii": float(rr.Radius.ui_points(5.0))},
+                # rerun annotates ui_points as returning ArrayLike (it is a 0-d float32 array)
+                {"radii": float(rr.Radius.ui_points(5.0))},  # type: ignore[arg-type]
             )
 
     # -- estimates --------------------------------------------------------------------
@@ -752,8 +754,8 @@ class RerunReplayLogger(ReplayLogger):
     def log_links(
         self, t_s: float, kind: str, a_xyz_m: ArrayLike, b_xyz_m: ArrayLike, status: Sequence[str]
     ) -> None:
-        status = np.asarray(status, dtype=str).reshape(-1)
-        self.log_links_many([t_s], kind, [len(status)], a_xyz_m, b_xyz_m, status)
+        status_arr = np.asarray(status, dtype=str).reshape(-1)
+        self.log_links_many([t_s], kind, [len(status_arr)], a_xyz_m, b_xyz_m, status_arr)
 
     def log_links_many(
         self,
@@ -762,24 +764,24 @@ class RerunReplayLogger(ReplayLogger):
         counts: ArrayLike,
         a_xyz_m: ArrayLike,
         b_xyz_m: ArrayLike,
-        status: Sequence[str],
+        status: Sequence[str] | NDArray[np.str_],
     ) -> None:
         self._check_open()
         times = np.asarray(t_s, dtype=float).reshape(-1).tolist()
         lengths = np.asarray(counts, dtype=int).reshape(-1).tolist()
         a = np.asarray(a_xyz_m, dtype=float).reshape(-1, 3)
         b = np.asarray(b_xyz_m, dtype=float).reshape(-1, 3)
-        status = np.asarray(status, dtype=str).reshape(-1)
-        if not (len(a) == len(b) == len(status) == sum(lengths)) or len(times) != len(lengths):
+        status_arr = np.asarray(status, dtype=str).reshape(-1)
+        if not (len(a) == len(b) == len(status_arr) == sum(lengths)) or len(times) != len(lengths):
             raise ValueError(
-                f"log_links: {len(a)} starts, {len(b)} ends, {len(status)} statuses, "
+                f"log_links: {len(a)} starts, {len(b)} ends, {len(status_arr)} statuses, "
                 f"{sum(lengths)} links in {len(lengths)} counts for {len(times)} times"
             )
-        code = np.full(len(status), -1)
+        code = np.full(len(status_arr), -1)
         for i, name in enumerate(LINK_STATUSES):
-            code[status == name] = i
+            code[status_arr == name] = i
         if (code < 0).any():
-            bad = sorted(set(status[code < 0].tolist()))
+            bad = sorted(set(status_arr[code < 0].tolist()))
             raise ValueError(f"log_links: unknown status {bad}; expected one of {LINK_STATUSES}")
         colors = np.array([STATUS_RGB[s] for s in LINK_STATUSES], dtype=np.uint8)[code]
         self._add_rows(

@@ -348,7 +348,8 @@ def load_polygons(
     for p in paths:
         path = Path(p)
         b, f, s = _load_one(path, params, geo_reference)
-        for obj in (*b, *f):
+        areas: tuple[Building | FoliageArea, ...] = (*b, *f)
+        for obj in areas:
             if obj.id in seen:
                 raise UserError(
                     f"{path}: polygon id '{obj.id}' appears twice (also in {seen[obj.id]})",

@@ -179,7 +179,19 @@ class GnssReceiver:
 class _TrackingStates:
     """Per (receiver row, PRN slot) tracking states and per-row clocks of all receivers, grown on demand."""
 
-    echo_wall: NDArray[np.int64]  # (the arrays are set by _grow)
+    # (the arrays are set by _grow)
+    last_t: F64
+    z_mp: F64
+    z_mp_phase: F64
+    z_noise: F64
+    ambiguity: I64
+    lock_start: F64
+    los: NDArray[np.bool_]
+    echo_wall: I64
+    clock: F64
+    clock_t: F64
+    draws: F64
+    draw_pos: I64
 
     def __init__(self, rows: int = 8):
         self.cap = 0
@@ -515,6 +527,8 @@ class GnssSynthesizer:
         sky = None
         if self.occlusion is not None and geom.shape[0]:
             el = np.ascontiguousarray(geom[:, _G_EL])
+            # set by _init_fields above: an occlusion geometry comes with a georef (checked in __init__)
+            assert self._convergence_rad is not None
             az_grid = geom[:, _G_AZ] - self._convergence_rad
             if hasattr(self.occlusion, "sky_many"):
                 # Batched queries of whole epochs' rays (each ray's answer depends on that ray only),
@@ -742,6 +756,7 @@ class GnssSynthesizer:
             node_sets[0][c][None] if len(node_sets) == 1 else np.stack([ns[c] for ns in node_sets]) for c in range(6))
         io, tr = self.config.errors.iono, self.config.errors.tropo
         fi, ft = self._iono, self._tropo
+        assert fi is not None and ft is not None  # set by _init_fields before the first epoch
         out = np.empty((int(layout.pair_off[-1]), _G_N))
         _geometry_kernel(
             layout.t_ep, self.gps_start_s, layout.row_off, layout.pair_off, ep_node, layout.ep_cand, layout.cand_off,

@@ -84,10 +84,10 @@ def read_sp3(path: str | Path) -> Sp3Orbits:
             try:
                 x, y, z = (float(line[4 + 14 * k : 18 + 14 * k]) for k in range(3))
                 clk_txt = line[46:60].strip()
-                clk = float(clk_txt) if clk_txt else 999999.999999
+                clk_us = float(clk_txt) if clk_txt else 999999.999999
             except ValueError:
                 raise err(i, f"cannot read the position record of {sv}") from None
-            recs.setdefault(sv, {})[len(epochs) - 1] = (x, y, z, clk)
+            recs.setdefault(sv, {})[len(epochs) - 1] = (x, y, z, clk_us)
         elif line.startswith("EOF"):
             break
     if not epochs or not recs:
