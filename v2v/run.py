@@ -401,6 +401,7 @@ def _run_scenario(scenario: Scenario, out_dir: Path, *, quiet: bool, replay: boo
                 timing["bearing"] += time.perf_counter() - t0
                 grid_times = [t for t, _ in epochs]  # output epochs: the GNSS grid before faults
                 if fault_log is not None:
+                    assert frng is not None  # (made with the fault log)
                     epochs = apply_gnss_faults(epochs, list(scenario.faults), frng, fault_log)
                     uwb = apply_uwb_faults(uwb, list(scenario.faults), frng, fault_log)
                     bearings = apply_bearing_faults(bearings, list(scenario.faults), frng, fault_log)

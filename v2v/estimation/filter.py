@@ -835,8 +835,8 @@ class ClusterFilterBase(ABC):
         self.layout = new
         self._replace(x, P)
         for _, key in drop:
-            self._phase_streak.pop(key, None)  # type: ignore[arg-type]
-            self._amb_since.pop(key, None)  # type: ignore[arg-type]
+            self._phase_streak.pop(key, None)
+            self._amb_since.pop(key, None)
 
     def _add_ambiguities(self, adds: list[tuple[tuple[str, int], Row, float]], r_var: float) -> None:
         """New SD ambiguities from their first phase: ``a = nu / lambda`` (``nu = z - h_0(x)``),
