@@ -447,65 +447,78 @@ class UpdateLog:
         self._pending.append((t_s, infos, faulty))
 
     def flush(self) -> None:
+        """Spill the pending updates to the log file as one chunk of compact columns: time
+        tags, kinds and vehicle sets as codes into the chunk's name lists, PRN, NIS and the
+        flags as arrays. A column batch contributes its columns whole (one kind, all accepted);
+        plain records field by field."""
         if not self._pending:
             return
         import pickle
         import tempfile
 
-        n = sum(len(i) for _, i, _ in self._pending)
-        if not n:
-            self._pending = []
-            return
-        if any(isinstance(t, np.ndarray) for t, _, _ in self._pending):  # some entries carry a time per record
-            t_s = np.concatenate([np.asarray(t, dtype=float) if isinstance(t, np.ndarray) else np.full(len(i), t, dtype=float)
-                                  for t, i, _ in self._pending])
-        else:
-            t_s = np.repeat(np.array([t for t, _, _ in self._pending], dtype=float),
-                            [len(i) for _, i, _ in self._pending])
-        faulty = np.fromiter((f for _, _, fs in self._pending for f in fs), bool, n)
-        # the UpdateInfo fields column by column; a batch of accepted updates (UpdateBatch)
-        # straight from its columns, plain records field by field
-        kind: list[str] = []
+        pending, self._pending = self._pending, []
+        seg_kind: list[str] = []  # per segment: its kind (batches) ...
+        seg_len: list[int] = []
+        rec_kind: list[str] = []  # ... or per record (plain records): their kinds, seg_kind gets ""
         vehicles: list[tuple[str, ...]] = []
         nis: list[Any] = []
         accepted: list[Any] = []
-        prn: list[int] = []
-        for _, infos, _ in self._pending:
+        prn: list[Any] = []
+        t_parts: list[Any] = []
+        for t, infos, _ in pending:
+            n_ev = 0
             for seg in _segments(infos):
-                if not len(seg):
+                m = len(seg)
+                if not m:
                     continue
+                n_ev += m
                 if isinstance(seg, UpdateBatch):
-                    m = len(seg)
-                    kind += [seg.kind] * m
+                    seg_kind.append(seg.kind)
+                    seg_len.append(m)
                     vehicles += seg.vehicles
                     nis.append(seg.nis)
-                    accepted.append(np.ones(m, dtype=bool))
-                    prn += [-1] * m if seg.prn is None else seg.prn
+                    accepted.append(m)  # all accepted
+                    prn.append(m if seg.prn is None else seg.prn)  # m: -1 for all
                 else:
                     k, v, _nu, _s, ni, ac, pr = zip(*seg, strict=True)
-                    kind += k
+                    seg_kind.append("")
+                    seg_len.append(m)
+                    rec_kind += k
                     vehicles += v
                     nis.append(np.array(ni, dtype=float))
                     accepted.append(np.array(ac, dtype=bool))
-                    prn += pr
-        joined = {v: ",".join(v) for v in set(vehicles)}
-        names = sorted(set(kind))  # the chunk's kinds; each update stores its kind as an index into them
+                    prn.append(pr)
+            if n_ev:
+                t_parts.append(np.asarray(t, dtype=float) if isinstance(t, np.ndarray) else np.full(n_ev, t, dtype=float))
+        n = len(vehicles)
+        if not n:
+            return
+        faulty = np.fromiter((f for _, _, fs in pending for f in fs), bool, n)
+        names = sorted({k for k in seg_kind if k} | set(rec_kind))  # the chunk's kinds
         code = {k: i for i, k in enumerate(names)}
+        if rec_kind:
+            it = iter(map(code.__getitem__, rec_kind))
+            kind_code = np.concatenate([np.full(m, code[k], np.int16) if k else np.fromiter(it, np.int16, m)
+                                        for k, m in zip(seg_kind, seg_len, strict=True)])
+        else:
+            kind_code = np.repeat(np.array([code[k] for k in seg_kind], dtype=np.int16), seg_len)
+        veh_index = {v: i for i, v in enumerate(dict.fromkeys(vehicles))}  # the chunk's vehicle sets, first-seen order
         cols = {
-            "t_s": t_s,
+            "t_s": np.concatenate(t_parts),
             "kind_names": names,
-            "kind_code": np.fromiter(map(code.__getitem__, kind), np.int16, n),
-            "vehicles": np.array([joined[v] for v in vehicles], dtype=object),
-            "prn": prn,
+            "kind_code": kind_code,
+            "vehicle_names": [",".join(v) for v in veh_index],
+            "vehicle_code": np.fromiter(map(veh_index.__getitem__, vehicles), np.int32, n),
+            "prn": np.concatenate([np.full(p, -1, np.int64) if isinstance(p, int) else np.asarray(p, dtype=np.int64)
+                                   for p in prn]),
             "nis": np.concatenate(nis),
-            "accepted": np.concatenate(accepted),
+            "accepted": np.concatenate([np.ones(a, dtype=bool) if isinstance(a, int) else a for a in accepted]),
             "faulty": faulty,
         }
         if self._file is None:
             self._file = tempfile.TemporaryFile(prefix="v2v_updates_")
         pickle.dump(cols, self._file, protocol=pickle.HIGHEST_PROTOCOL)
         self.n += n
-        self._pending = []
 
     def kind_statistics(self) -> dict[str, Any]:
         """Per measurement kind (sorted), :func:`v2v.metrics.summary.update_kind_statistics` of
@@ -560,6 +573,8 @@ class UpdateLog:
             for k in names:
                 if k == "kind":  # stored as indices into the chunk's kind names
                     out[k].extend(map(cols["kind_names"].__getitem__, cols["kind_code"].tolist()))
+                elif k == "vehicles":  # likewise
+                    out[k].extend(map(cols["vehicle_names"].__getitem__, cols["vehicle_code"].tolist()))
                 else:
                     out[k].extend(cols[k].tolist() if isinstance(cols[k], np.ndarray) else cols[k])
         self._file.seek(0, 2)
@@ -890,16 +905,24 @@ def _update_counts(infos: Sequence[UpdateInfo]) -> dict[str, dict[str, int]]:
     (an update counts once for each vehicle it names). A batch's vehicles are counted from its
     column in one pass (tens of thousands of records per epoch in a large cluster: bearings
     and ranges name a distinct pair each)."""
-    counts: dict[str, dict[str, int]] = {}
-    per: Counter[tuple[str, str]] = Counter()  # (vehicle, count key)
+    per: dict[str, Counter[str]] = {}  # batches: count key -> vehicle -> count
+    pairs: Counter[tuple[str, str]] = Counter()  # plain records: (vehicle, count key) -> count
     for p in (infos.parts if isinstance(infos, Updates) else [infos]):
         if isinstance(p, UpdateBatch):  # all accepted
             key = _count_key(p.kind, True)
-            per.update(zip(itertools.chain.from_iterable(p.vehicles), itertools.repeat(key)))
+            c = per.get(key)
+            if c is None:
+                c = per[key] = Counter()
+            c.update(itertools.chain.from_iterable(p.vehicles))
         else:
-            per.update((v, _count_key(info.kind, info.accepted)) for info in p for v in info.vehicles)
-    for (v, key), n in per.items():
-        counts.setdefault(v, {})[key] = n
+            pairs.update((v, _count_key(info.kind, info.accepted)) for info in p for v in info.vehicles)
+    counts: dict[str, dict[str, int]] = {}
+    for key, c in per.items():
+        for v, n in c.items():
+            counts.setdefault(v, {})[key] = n
+    for (v, key), n in pairs.items():
+        cv = counts.setdefault(v, {})
+        cv[key] = cv.get(key, 0) + n
     return counts
 
 
