@@ -595,9 +595,10 @@ class ClusterFilterBase(ABC):
             # every vehicle's common satellites with the lead (np.intersect1d order), finite
             # pseudoranges, highest elevation first: kernels.pair_satellites, all in one call
             eps_v = [epochs[v] for v in have]
+            prn_cat, pr_cat, row0 = _cati([ep.prn for ep in eps_v]), _cat1([ep.pseudorange_m for ep in eps_v]), \
+                _offsets([len(ep.prn) for ep in eps_v])
             iv_cat, il_cat, el_cat, moff_v, bad_v = kernels.pair_satellites_all(
-                _cati([ep.prn for ep in eps_v]), _cat1([ep.pseudorange_m for ep in eps_v]),
-                _offsets([len(ep.prn) for ep in eps_v]), lead_prn, lead_pr, lead_sv, geo.base_ecef_m, geo.rot_ecef_to_enu)
+                prn_cat, pr_cat, row0, lead_prn, lead_pr, lead_sv, geo.base_ecef_m, geo.rot_ecef_to_enu)
             mo = moff_v.tolist()
         for j, v in enumerate(have):
             assert lead_ep is not None  # (have is empty without the lead's epoch)
@@ -619,7 +620,9 @@ class ClusterFilterBase(ABC):
         # (an initialization sets a block uncorrelated with the others, and a divergence reset
         # erases one: neither changes another vehicle's update, so they may come first / last)
         if pr_jobs and lead_ep is not None:
-            infos += self._sd_pseudoranges_all(geo, lead_ep, pr_jobs)
+            # every paired vehicle a job (the usual epoch): the jobs' gathers are the pairing's
+            pairing = _Pairing(have, prn_cat, pr_cat, row0, iv_cat, il_cat, moff_v) if len(pr_jobs) == len(have) else None
+            infos += self._sd_pseudoranges_all(geo, lead_ep, pr_jobs, pairing)
         for v, *_ in pr_jobs:
             if self._window_diverged(v):
                 self._reset_vehicle(v)  # re-initialized by the next epoch's snapshot
@@ -912,11 +915,15 @@ class ClusterFilterBase(ABC):
 
     def _record_tests(self, v: str, infos: Sequence[UpdateInfo]) -> None:
         """:meth:`_record_test` of several records in order."""
-        w = self._nis_window.setdefault(v, deque(maxlen=self.config.divergence_window))
         if isinstance(infos, UpdateBatch):
-            w.extend(zip(infos.nis.tolist(), repeat(True)))
+            self._record_accepted_nis(v, infos.nis.tolist())
         else:
-            w.extend(map(_nis_accepted, infos))
+            self._nis_window.setdefault(v, deque(maxlen=self.config.divergence_window)).extend(map(_nis_accepted, infos))
+
+    def _record_accepted_nis(self, v: str, nis: list[float]) -> None:
+        """:meth:`_record_tests` of accepted records given by their NIS values."""
+        w = self._nis_window.setdefault(v, deque(maxlen=self.config.divergence_window))
+        w.extend(zip(nis, repeat(True)))
 
     def window_mean_nis(self, v: str) -> float:
         """Mean NIS of the last ``divergence_window`` SD-pseudorange tests of ``v`` (NaN if none)."""
@@ -1008,8 +1015,10 @@ class ClusterFilterBase(ABC):
         return out
 
     def _sd_pseudoranges_all(self, geo: GnssGeometry, lead_ep: GnssEpoch,
-                             jobs: list[tuple[str, GnssEpoch, NDArray, NDArray]]) -> Sequence[UpdateInfo]:
-        """Engine hook: :meth:`_sd_pseudoranges` of every ``(v, epoch, iv, il)`` in order."""
+                             jobs: list[tuple[str, GnssEpoch, NDArray, NDArray]],
+                             pairing: _Pairing | None = None) -> Sequence[UpdateInfo]:
+        """Engine hook: :meth:`_sd_pseudoranges` of every ``(v, epoch, iv, il)`` in order
+        (``pairing``: the epoch's satellite pairing, when the jobs are all its vehicles in its order)."""
         return [info for v, ep, iv, il in jobs for info in self._sd_pseudoranges(v, geo, ep, lead_ep, iv, il)]
 
     def _sd_dopplers_all(self, geo: GnssGeometry, lead_ep: GnssEpoch,
@@ -1491,6 +1500,20 @@ def _all_accepted_records(kind: str, vehicles: list[str], bat: _GnssBatch, order
     return UpdateBatch(kind, veh, nu, s, prn.tolist())
 
 
+class _Pairing(NamedTuple):
+    """One epoch's satellite pairing (:func:`v2v.estimation.kernels.pair_satellites_all`) of
+    the vehicles ``names``: their receivers' PRNs and pseudoranges one after another (rows
+    ``row0[j]:row0[j+1]``), the common satellites ``iv_cat`` / ``il_cat`` sliced by ``moff``."""
+
+    names: list[str]
+    prn_cat: NDArray[np.int64]
+    pr_cat: F64
+    row0: NDArray[np.int64]
+    iv_cat: NDArray[np.int64]
+    il_cat: NDArray[np.int64]
+    moff: NDArray[np.int64]
+
+
 class _GnssBatch:
     """The concatenated gathers of one epoch's all-vehicle GNSS kernel call: per job
     ``(v, epoch, iv, il)`` its receiver's rows start at ``row0[j]``, its common satellites are
@@ -1511,16 +1534,24 @@ class _GnssBatch:
     _prn_cat: NDArray[np.int64] | None
 
     @classmethod
-    def of(cls, lead_ep: GnssEpoch, jobs: list[tuple[str, GnssEpoch, NDArray, NDArray]]) -> _GnssBatch:
+    def of(cls, lead_ep: GnssEpoch, jobs: list[tuple[str, GnssEpoch, NDArray, NDArray]],
+           pairing: _Pairing | None = None) -> _GnssBatch:
+        """The gathers of ``jobs``; given the epoch's ``pairing`` (the jobs are its vehicles in
+        its order, their ``iv`` / ``il`` its slices), its arrays are taken as they are."""
         b = cls()
         b.lead_ep, b.jobs = lead_ep, list(jobs)
-        b.row0 = _offsets([len(ep.prn) for _, ep, _, _ in jobs])
-        b.counts = [len(iv) for _, _, iv, _ in jobs]  # common satellites per job
-        b.moff = _offsets(b.counts)
-        b.iv_cat = _cati([iv for _, _, iv, _ in jobs])
-        b.il_cat = _cati([il for _, _, _, il in jobs])
-        b.sv_cat = _cat3([ep.sv_pos_ecef_m for _, ep, _, _ in jobs])
         b._vehicle_of = b._prn_cat = None
+        if pairing is not None:
+            b.row0, b.moff, b.iv_cat, b.il_cat = pairing.row0, pairing.moff, pairing.iv_cat, pairing.il_cat
+            b.counts = np.diff(pairing.moff).tolist()
+            b._prn_cat = pairing.prn_cat
+        else:
+            b.row0 = _offsets([len(ep.prn) for _, ep, _, _ in jobs])
+            b.counts = [len(iv) for _, _, iv, _ in jobs]  # common satellites per job
+            b.moff = _offsets(b.counts)
+            b.iv_cat = _cati([iv for _, _, iv, _ in jobs])
+            b.il_cat = _cati([il for _, _, _, il in jobs])
+        b.sv_cat = _cat3([ep.sv_pos_ecef_m for _, ep, _, _ in jobs])
         return b
 
     def same(self, lead_ep: GnssEpoch, jobs: list[tuple[str, GnssEpoch, NDArray, NDArray]]) -> bool:
@@ -1758,24 +1789,27 @@ class ClusterEkf(ClusterFilterBase):
         return out
 
     def _sd_pseudoranges_all(self, geo: GnssGeometry, lead_ep: GnssEpoch,
-                             jobs: list[tuple[str, GnssEpoch, NDArray, NDArray]]) -> Sequence[UpdateInfo]:
+                             jobs: list[tuple[str, GnssEpoch, NDArray, NDArray]],
+                             pairing: _Pairing | None = None) -> Sequence[UpdateInfo]:
         """:meth:`ClusterFilterBase._sd_pseudoranges` of every vehicle in one compiled call
         (:func:`v2v.estimation.kernels.sd_pseudorange_vehicles`: per vehicle the same row,
         clock-jump, screen and batch kernels in the same order, on one shared deferred-update
         buffer); counters, NIS windows and records as there."""
         cfg = self.config
         names = [v for v, *_ in jobs]
-        bat = _GnssBatch.of(lead_ep, jobs)
+        bat = _GnssBatch.of(lead_ep, jobs, pairing)
         self._last_batch = bat  # the epoch's Doppler call reuses the gathers when its jobs are the same
         jump, isolated, n_flagged, order, nu, s, st = kernels.sd_pseudorange_vehicles(
             self._x, self._P, geo.base_ecef_m, geo.rot_ecef_to_enu, self._indices(self._pos0, names),
-            self._indices(self._clk, names), bat.sv_cat, _cat1([ep.pseudorange_m for _, ep, _, _ in jobs]),
+            self._indices(self._clk, names), bat.sv_cat,
+            _cat1([ep.pseudorange_m for _, ep, _, _ in jobs]) if pairing is None else pairing.pr_cat,
             bat.row0, _c3(lead_ep.sv_pos_ecef_m), _c1(lead_ep.pseudorange_m), bat.iv_cat, bat.il_cat, bat.moff,
             cfg.noise.sd_pseudorange_var_m2, self._k, cfg.clock_jump_detection, cfg.clock_reset_sigma_m**2)
         moff = bat.moff
         recs_all = _all_accepted_records(KIND_SD_PR, names, bat, order, nu, s, st)
         out = Updates()
         mo = moff.tolist()
+        nis = recs_all.nis.tolist() if recs_all is not None else None
         for j, ((v, ep, iv, _), jp, iso, nf) in enumerate(zip(jobs, jump.tolist(), isolated.tolist(), n_flagged.tolist(),
                                                              strict=True)):
             if jp:
@@ -1785,8 +1819,8 @@ class ClusterEkf(ClusterFilterBase):
                 self.counters["screened_first_update"] = self.counters.get("screened_first_update", 0) + nf
             self.integrity_available[v] = iso
             a, b = mo[j], mo[j + 1]
-            if recs_all is not None:  # all accepted: the NIS window from the batch's columns
-                self._record_tests(v, recs_all[a:b])
+            if nis is not None:  # all accepted: the NIS window from the batch's column
+                self._record_accepted_nis(v, nis[a:b])
             else:
                 recs = self._records(KIND_SD_PR, (v,), order[a:b], nu[a:b], s[a:b], st[a:b], ep.prn[iv])
                 self._record_tests(v, recs)
