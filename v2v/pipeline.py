@@ -934,6 +934,11 @@ def _count_key(kind: str, accepted: bool) -> str:
     return key
 
 
+# the update-count columns of an epoch row, in column order (used_<kind>, rejected_<kind> per kind)
+_ROW_COUNT_KEYS = tuple(f"{pre}_{kind}" for kind in ("pr", "doppler", "uwb", "bearing") for pre in ("used", "rejected"))
+_ROW_COUNT_KEYS_PHASE = _ROW_COUNT_KEYS + ("used_phase", "rejected_phase")
+
+
 def _epoch_rows(name: str, t_s: float, ekf: ClusterEkf, step: TrafficStep, lead: str, vehicles: Sequence[str],
                 infos: Sequence[UpdateInfo]) -> list[dict[str, Any]]:
     """One row per cluster vehicle at output epoch ``t_s``: truth and estimate relative to the
@@ -941,7 +946,7 @@ def _epoch_rows(name: str, t_s: float, ekf: ClusterEkf, step: TrafficStep, lead:
     position, update counts; the numbers of all vehicles from one compiled call
     (:func:`v2v.metrics.errors.epoch_errors`)."""
     lead_st = step.vehicles[lead]
-    x, P = ekf.x, ekf.P
+    x, P = ekf.state_arrays()  # (epoch_errors only reads them)
     lay = ekf.layout
     counts = _update_counts(infos)
     est_v = [v for v in vehicles if v in step.vehicles and v in lay.vehicles]
@@ -955,7 +960,7 @@ def _epoch_rows(name: str, t_s: float, ekf: ClusterEkf, step: TrafficStep, lead:
             np.asarray(lead_st.vel_enu_mps, dtype=float), float(np.sin(a)), float(np.cos(a)),
             np.array([ekf.is_initialized(v) for v in est_v]))
         num = dict(zip(est_v, nums.tolist(), strict=True))
-    kinds = ("pr", "doppler", "uwb", "bearing") + (("phase",) if ekf.config.phase is not None else ())
+    count_keys = _ROW_COUNT_KEYS_PHASE if ekf.config.phase is not None else _ROW_COUNT_KEYS
     integrity = getattr(ekf, "integrity_available", {})
     rows = []
     for v in vehicles:
@@ -969,9 +974,8 @@ def _epoch_rows(name: str, t_s: float, ekf: ClusterEkf, step: TrafficStep, lead:
         row = {"t_s": t_s, "solution": name, "vehicle": v, "initialized": ekf.is_initialized(v),
                **dict(zip(EPOCH_COLUMNS, num[v], strict=True)),
                "true_lane_index": st.lane_index, "lead_lane_index": lead_st.lane_index, "lane_width_m": st.lane_width_m}
-        for kind in kinds:
-            row[f"used_{kind}"] = c.get(f"used_{kind}", 0)
-            row[f"rejected_{kind}"] = c.get(f"rejected_{kind}", 0)
+        for key in count_keys:
+            row[key] = c.get(key, 0)
         row["integrity_available"] = bool(integrity.get(v, False))
         if lay.has("azimuth", v):
             row["azimuth_err_rad"] = float(_wrap(ekf.azimuth_rad(v) - st.azimuth_rad)) if ekf.is_azimuth_initialized(v) else float("nan")

@@ -497,6 +497,11 @@ class ClusterFilterBase(ABC):
     def P(self) -> F64:
         return self._get_P().copy()
 
+    def state_arrays(self) -> tuple[F64, F64]:
+        """The state and covariance arrays themselves, not copies (:attr:`x` and :attr:`P` copy):
+        for a reader that neither modifies nor keeps them (the per-epoch error rows)."""
+        return self._get_x(), self._get_P()
+
     def is_initialized(self, v: str) -> bool:
         return v == self.layout.lead or self._vehicle_ready.get(v, False)
 
