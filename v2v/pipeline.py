@@ -456,10 +456,10 @@ class UpdateLog:
         import pickle
         import tempfile
 
-        pending, self._pending = self._pending, []
-        seg_kind: list[str] = []  # per segment: its kind (batches) ...
+        pending = self._pending
+        seg_kind: list[str | None] = []  # per segment: its kind (batches) ...
         seg_len: list[int] = []
-        rec_kind: list[str] = []  # ... or per record (plain records): their kinds, seg_kind gets ""
+        rec_kind: list[str] = []  # ... or per record (plain records): their kinds, seg_kind gets None
         vehicles: list[tuple[str, ...]] = []
         nis: list[Any] = []
         accepted: list[Any] = []
@@ -481,7 +481,7 @@ class UpdateLog:
                     prn.append(m if seg.prn is None else seg.prn)  # m: -1 for all
                 else:
                     k, v, _nu, _s, ni, ac, pr = zip(*seg, strict=True)
-                    seg_kind.append("")
+                    seg_kind.append(None)
                     seg_len.append(m)
                     rec_kind += k
                     vehicles += v
@@ -492,16 +492,17 @@ class UpdateLog:
                 t_parts.append(np.asarray(t, dtype=float) if isinstance(t, np.ndarray) else np.full(n_ev, t, dtype=float))
         n = len(vehicles)
         if not n:
+            self._pending = []
             return
         faulty = np.fromiter((f for _, _, fs in pending for f in fs), bool, n)
-        names = sorted({k for k in seg_kind if k} | set(rec_kind))  # the chunk's kinds
+        names = sorted({k for k in seg_kind if k is not None} | set(rec_kind))  # the chunk's kinds
         code = {k: i for i, k in enumerate(names)}
         if rec_kind:
             it = iter(map(code.__getitem__, rec_kind))
-            kind_code = np.concatenate([np.full(m, code[k], np.int16) if k else np.fromiter(it, np.int16, m)
+            kind_code = np.concatenate([np.fromiter(it, np.int16, m) if k is None else np.full(m, code[k], np.int16)
                                         for k, m in zip(seg_kind, seg_len, strict=True)])
-        else:
-            kind_code = np.repeat(np.array([code[k] for k in seg_kind], dtype=np.int16), seg_len)
+        else:  # (every segment a batch: no None among the kinds)
+            kind_code = np.repeat(np.array([code[k] for k in seg_kind if k is not None], dtype=np.int16), seg_len)
         veh_index = {v: i for i, v in enumerate(dict.fromkeys(vehicles))}  # the chunk's vehicle sets, first-seen order
         cols = {
             "t_s": np.concatenate(t_parts),
@@ -519,6 +520,7 @@ class UpdateLog:
             self._file = tempfile.TemporaryFile(prefix="v2v_updates_")
         pickle.dump(cols, self._file, protocol=pickle.HIGHEST_PROTOCOL)
         self.n += n
+        self._pending = []
 
     def kind_statistics(self) -> dict[str, Any]:
         """Per measurement kind (sorted), :func:`v2v.metrics.summary.update_kind_statistics` of

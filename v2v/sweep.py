@@ -575,7 +575,7 @@ def run_study(
     While the runs complete, ``runs.parquet`` is rewritten at most every ``flush_every_s``
     seconds, and never more often than every 20 times the last rewrite took (the table grows
     with the study, and this process shares the machine with the workers: its rewrites are
-    kept to <= 5 % of its time); it is complete when the call returns, also after Ctrl-C.
+    kept to <= 5 % of the wall time); it is complete when the call returns, also after Ctrl-C.
 
     The output folder is locked while the study runs (:class:`_FolderLock`): a second sweep
     on the same folder stops with a one-line error instead of racing the first."""

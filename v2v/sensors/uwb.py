@@ -65,7 +65,7 @@ import math
 from collections.abc import Mapping, Sequence
 from dataclasses import dataclass, fields
 from pathlib import Path
-from typing import Any, cast
+from typing import Any
 
 import numpy as np
 from numba import njit
@@ -711,7 +711,9 @@ class _Clone:
         bg = type(g.bit_generator)()
         bg.state = g.bit_generator.state
         if advance:
-            cast(np.random.PCG64, bg).advance(advance)  # (default_rng's PCG64, as the docstring says)
+            if not isinstance(bg, np.random.PCG64):  # (the run's streams are default_rng's PCG64)
+                raise TypeError(f"UWB random streams must be Generator(PCG64), got {type(bg).__name__}")
+            bg.advance(advance)
         return np.random.Generator(bg)
 
 
