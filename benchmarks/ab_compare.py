@@ -10,9 +10,12 @@ between invocations: a fresh tree compiles its numba kernels on first use, 1-2 m
 20 vehicles, the urban canyon, residential, hospital loop, carrier-phase and highway drives,
 a lossy exchange, four injected faults; each a few tens of simulated seconds, replay off)
 with both versions in fresh processes, and compares ``truth.parquet`` and ``epochs.parquet``
-(``DataFrame.equals``: same values, NaN where NaN, same dtypes and column order),
-``summary.json`` apart from the wall times, and every solution's per-update log (columns of
-:attr:`v2v.pipeline.SolutionRecord.updates`, NaN equal to NaN). Exit status 1 if any differ.
+(same columns, dtypes and values; floats bit for bit, so -0.0 differs from 0.0, NaN equals
+NaN), ``summary.json`` apart from the wall times, and every solution's per-update log (columns
+of :attr:`v2v.pipeline.SolutionRecord.updates`), values and types alike. Exit status 1 if any
+differ. (The update logs are read through ``v2v.pipeline.run_solution``, which ``run.py``
+calls through the module, and ``SolutionRecord.log``, both from 551735d on; an older base is
+refused with a one-line error.)
 
 ``speed``: per cluster size (the ``bench_run.py`` scenario), ``--rounds`` rounds in which each
 version runs in a fresh process (the two in alternating order): a cold run, then ``--repeat``
@@ -32,6 +35,7 @@ import math
 import os
 import pickle
 import statistics
+import struct
 import subprocess
 import sys
 import tempfile
@@ -80,6 +84,9 @@ pl.run_solution = wrapped
 for name, (path, sets) in cases.items():
     store.clear()
     run_scenario(load_scenario(path, sets), out / name, quiet=True, replay=False)
+    if not store or not all(hasattr(r, "log") for r in store):  # (both from 551735d on)
+        raise SystemExit("its update logs cannot be read (run.py calls v2v.pipeline.run_solution through the "
+                         "module, and SolutionRecord keeps a log, from 551735d on): compare with a newer revision")
     with open(out / name / "updates.pkl", "wb") as f:
         pickle.dump([(r.name, r.log.columns()) for r in store], f)
 print(json.dumps({"v2v": v2v.__file__}))
@@ -110,14 +117,16 @@ def base_tree(rev: str | None, base_dir: Path | None):
         return
     with tempfile.TemporaryDirectory(prefix="v2v-ab-") as tmp:
         tree = Path(tmp) / "base"
-        p = subprocess.run(["git", "-C", str(ROOT), "worktree", "add", "--detach", str(tree), rev or "HEAD"],
-                           capture_output=True, text=True)
-        if p.returncode:
-            raise SystemExit(f"ab_compare: --base {rev}: {p.stderr.strip().splitlines()[-1]}")
         try:
+            p = subprocess.run(["git", "-C", str(ROOT), "worktree", "add", "--detach", str(tree), rev or "HEAD"],
+                               capture_output=True, text=True)
+            if p.returncode:
+                why = (p.stderr.strip().splitlines() or ["git worktree add failed"])[-1]
+                raise SystemExit(f"ab_compare: --base {rev}: {why}")
             yield tree
-        finally:
+        finally:  # (also after Ctrl-C; prune forgets a worktree whose folder is already gone)
             subprocess.run(["git", "-C", str(ROOT), "worktree", "remove", "--force", str(tree)], capture_output=True)
+            subprocess.run(["git", "-C", str(ROOT), "worktree", "prune"], capture_output=True)
 
 
 def _run(tree: Path, code: str, args: list[str]) -> dict:
@@ -129,29 +138,59 @@ def _run(tree: Path, code: str, args: list[str]) -> dict:
     return json.loads(p.stdout.strip().splitlines()[-1])
 
 
-def _same_columns(a: list, b: list) -> bool:
-    """Lists equal element by element, NaN equal to NaN."""
-    return len(a) == len(b) and all(x == y or (isinstance(x, float) and isinstance(y, float) and math.isnan(x)
-                                               and math.isnan(y)) for x, y in zip(a, b, strict=True))
+def identical(x, y) -> bool:
+    """Bit for bit: the same types, floats with the same bits (NaN equal to NaN, -0.0 not
+    equal to 0.0), containers element by element."""
+    if type(x) is not type(y):
+        return False
+    if isinstance(x, float):
+        return struct.pack("<d", x) == struct.pack("<d", y) or (math.isnan(x) and math.isnan(y))
+    if isinstance(x, list | tuple):
+        return len(x) == len(y) and all(identical(p, q) for p, q in zip(x, y, strict=True))
+    if isinstance(x, dict):
+        return x.keys() == y.keys() and all(identical(x[k], y[k]) for k in x)
+    return x == y
+
+
+def _frames_identical(a, b) -> bool:
+    """Two tables with the same columns, dtypes and values, float columns bit for bit (NaN
+    where NaN)."""
+    import numpy as np
+
+    if list(a.columns) != list(b.columns) or list(a.dtypes) != list(b.dtypes) or len(a) != len(b):
+        return False
+    for c in a.columns:
+        x, y = a[c].to_numpy(), b[c].to_numpy()
+        if x.dtype.kind == "f":
+            nan = np.isnan(x)
+            bits = f"i{x.dtype.itemsize}"
+            if not (np.array_equal(nan, np.isnan(y))
+                    and np.array_equal(np.ascontiguousarray(x[~nan]).view(bits), np.ascontiguousarray(y[~nan]).view(bits))):
+                return False
+        elif not identical(x.tolist(), y.tolist()):
+            return False
+    return True
 
 
 def compare_run(a: Path, b: Path) -> list[str]:
     """What differs between two run folders of the same scenario (empty: identical)."""
     import pandas as pd
 
-    diffs = [f for f in ("truth.parquet", "epochs.parquet") if not pd.read_parquet(a / f).equals(pd.read_parquet(b / f))]
+    diffs = [f for f in ("truth.parquet", "epochs.parquet")
+             if not _frames_identical(pd.read_parquet(a / f), pd.read_parquet(b / f))]
     sa, sb = (json.loads((d / "summary.json").read_text()) for d in (a, b))
     for s in (sa, sb):
         for k in ("wall_s", "real_time_factor", "timing_s"):
             s.pop(k, None)
-    if sa != sb:
-        diffs.append("summary.json: " + ", ".join(sorted(k for k in sa.keys() | sb.keys() if sa.get(k) != sb.get(k))))
+    if not identical(sa, sb):
+        diffs.append("summary.json: " + ", ".join(sorted(k for k in sa.keys() | sb.keys()
+                                                         if not identical(sa.get(k), sb.get(k)))))
     ua, ub = (pickle.loads((d / "updates.pkl").read_bytes()) for d in (a, b))
     if [n for n, _ in ua] != [n for n, _ in ub]:
         diffs.append("update logs: other solutions")
     else:
         for (name, ca), (_, cb) in zip(ua, ub, strict=True):
-            bad = [k for k in ca.keys() | cb.keys() if not _same_columns(ca.get(k, []), cb.get(k, []))]
+            bad = [k for k in ca.keys() | cb.keys() if not identical(ca.get(k), cb.get(k))]
             if bad:
                 diffs.append(f"update log of {name}: {', '.join(sorted(bad))}")
     return diffs
