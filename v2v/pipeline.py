@@ -19,6 +19,7 @@ from pathlib import Path
 from typing import Any
 
 import numpy as np
+from numpy.typing import NDArray
 
 from v2v.config.scenario import Scenario
 from v2v.config.sections import SolutionSection
@@ -457,12 +458,11 @@ class UpdateLog:
         import tempfile
 
         pending = self._pending
-        seg_kind: list[str | None] = []  # per segment: its kind (batches) ...
-        seg_len: list[int] = []
-        rec_kind: list[str] = []  # ... or per record (plain records): their kinds, seg_kind gets None
+        code: dict[str, int] = {}  # the chunk's kinds, numbered in order of first appearance
+        kinds: list[NDArray[np.int16]] = []
         vehicles: list[tuple[str, ...]] = []
         nis: list[Any] = []
-        accepted: list[Any] = []
+        accepted: list[NDArray[np.bool_]] = []
         prn: list[Any] = []
         t_parts: list[Any] = []
         for t, infos, _ in pending:
@@ -473,17 +473,14 @@ class UpdateLog:
                     continue
                 n_ev += m
                 if isinstance(seg, UpdateBatch):
-                    seg_kind.append(seg.kind)
-                    seg_len.append(m)
+                    kinds.append(np.full(m, code.setdefault(seg.kind, len(code)), np.int16))
                     vehicles += seg.vehicles
                     nis.append(seg.nis)
-                    accepted.append(m)  # all accepted
-                    prn.append(m if seg.prn is None else seg.prn)  # m: -1 for all
+                    accepted.append(np.ones(m, dtype=bool))
+                    prn.append(np.full(m, -1, np.int64) if seg.prn is None else seg.prn)
                 else:
                     k, v, _nu, _s, ni, ac, pr = zip(*seg, strict=True)
-                    seg_kind.append(None)
-                    seg_len.append(m)
-                    rec_kind += k
+                    kinds.append(np.fromiter((code.setdefault(x, len(code)) for x in k), np.int16, m))
                     vehicles += v
                     nis.append(np.array(ni, dtype=float))
                     accepted.append(np.array(ac, dtype=bool))
@@ -495,14 +492,10 @@ class UpdateLog:
             self._pending = []
             return
         faulty = np.fromiter((f for _, _, fs in pending for f in fs), bool, n)
-        names = sorted({k for k in seg_kind if k is not None} | set(rec_kind))  # the chunk's kinds
-        code = {k: i for i, k in enumerate(names)}
-        if rec_kind:
-            it = iter(map(code.__getitem__, rec_kind))
-            kind_code = np.concatenate([np.fromiter(it, np.int16, m) if k is None else np.full(m, code[k], np.int16)
-                                        for k, m in zip(seg_kind, seg_len, strict=True)])
-        else:  # (every segment a batch: no None among the kinds)
-            kind_code = np.repeat(np.array([code[k] for k in seg_kind if k is not None], dtype=np.int16), seg_len)
+        names = sorted(code)  # each update stores its kind as an index into the chunk's sorted kinds
+        to_sorted = np.empty(len(names), dtype=np.int16)
+        to_sorted[[code[k] for k in names]] = np.arange(len(names), dtype=np.int16)
+        kind_code = to_sorted[np.concatenate(kinds)]
         veh_index = {v: i for i, v in enumerate(dict.fromkeys(vehicles))}  # the chunk's vehicle sets, first-seen order
         cols = {
             "t_s": np.concatenate(t_parts),
@@ -510,10 +503,9 @@ class UpdateLog:
             "kind_code": kind_code,
             "vehicle_names": [",".join(v) for v in veh_index],
             "vehicle_code": np.fromiter(map(veh_index.__getitem__, vehicles), np.int32, n),
-            "prn": np.concatenate([np.full(p, -1, np.int64) if isinstance(p, int) else np.asarray(p, dtype=np.int64)
-                                   for p in prn]),
+            "prn": np.concatenate([np.asarray(p, dtype=np.int64) for p in prn]),
             "nis": np.concatenate(nis),
-            "accepted": np.concatenate([np.ones(a, dtype=bool) if isinstance(a, int) else a for a in accepted]),
+            "accepted": np.concatenate(accepted),
             "faulty": faulty,
         }
         if self._file is None:

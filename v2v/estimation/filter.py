@@ -626,7 +626,7 @@ class ClusterFilterBase(ABC):
         # erases one: neither changes another vehicle's update, so they may come first / last)
         if pr_jobs and lead_ep is not None:
             # every paired vehicle a job (the usual epoch): the jobs' gathers are the pairing's
-            pairing = _Pairing(have, prn_cat, pr_cat, row0, iv_cat, il_cat, moff_v) if len(pr_jobs) == len(have) else None
+            pairing = _Pairing(prn_cat, pr_cat, row0, iv_cat, il_cat, moff_v) if len(pr_jobs) == len(have) else None
             infos += self._sd_pseudoranges_all(geo, lead_ep, pr_jobs, pairing)
         for v, *_ in pr_jobs:
             if self._window_diverged(v):
@@ -1507,10 +1507,9 @@ def _all_accepted_records(kind: str, vehicles: list[str], bat: _GnssBatch, order
 
 class _Pairing(NamedTuple):
     """One epoch's satellite pairing (:func:`v2v.estimation.kernels.pair_satellites_all`) of
-    the vehicles ``names``: their receivers' PRNs and pseudoranges one after another (rows
+    its vehicles: their receivers' PRNs and pseudoranges one after another (rows
     ``row0[j]:row0[j+1]``), the common satellites ``iv_cat`` / ``il_cat`` sliced by ``moff``."""
 
-    names: list[str]
     prn_cat: NDArray[np.int64]
     pr_cat: F64
     row0: NDArray[np.int64]
