@@ -27,6 +27,7 @@ from v2v.traffic.snapshot import TrafficStep, VehicleState  # noqa: E402
 from v2v.viz import blueprint as bp  # noqa: E402
 from v2v.viz.logger import NullLogger, ReplayLogger  # noqa: E402
 from v2v.viz.rerun_logger import (  # noqa: E402
+    SOLUTION_RGB,
     RerunReplayLogger,
     RerunReplayParams,
     ellipse_scale,
@@ -372,6 +373,42 @@ def test_blueprint_is_stored_with_the_views(run):
     assert set(selections) == expected
 
 
+
+def test_each_error_series_is_styled_on_its_entity_and_shown_in_one_view(run):
+    """The blueprint has no per-view overrides: an error series' look is the style logged
+    static on its entity. That equals a per-view style only if no series is in two views,
+    so each series path is selected by at most one view of the blueprint (rerun's own
+    filter engine); and its static style is the solution's colour (0xRRGGBBAA), named after
+    the solution (along/across), its +-1 sigma bounds at alpha 80, or per (solution, vehicle)."""
+    path, chunks = run
+    reader = RrdReader(path)
+    queries = []
+    for c in reader.stream(store=reader.blueprints()[0]):
+        assert "/overrides/" not in c.entity_path, c.entity_path
+        rb = c.to_record_batch()
+        if "ViewContents:query" in rb.schema.names:
+            queries.append(rb.column("ViewContents:query").to_pylist()[0])
+    shown: dict[str, int] = defaultdict(int)
+    for q in queries:
+        for p in {c.entity_path for c in RrdReader(path).stream().filter(content=q)}:
+            shown[p] += 1
+    for s, sol in enumerate(SOLUTIONS):
+        r, g, b = SOLUTION_RGB[s]
+        solid, faint = (r << 24) | (g << 16) | (b << 8) | 255, (r << 24) | (g << 16) | (b << 8) | 80
+        w08 = float(np.float32(0.8))  # widths are float32 components
+        for vid in VEHICLES[1:]:
+            for series in bp.ERROR_SERIES:
+                p = bp.error_path(sol, vid, series)
+                assert shown[p] == (0 if series == "nis" else 1), (p, shown[p])
+                (static,) = [c.to_record_batch() for c in chunks[p] if c.is_static]
+                style = {n.split(":")[1]: static.column(n).to_pylist()[0] for n in static.schema.names if n.startswith("SeriesLines:")}
+                if series in ("along", "across"):
+                    assert style == {"names": [sol], "colors": [solid], "widths": [1.5]}
+                elif series.endswith("_sigma"):
+                    assert style == {"names": [f"{sol} +1σ", f"{sol} -1σ"], "colors": [faint, faint], "widths": [w08, w08]}
+                else:
+                    assert style == {"names": [f"{sol} {vid}"], "colors": [solid], "widths": [1.5]}
+
 def test_null_logger_accepts_every_call():
     """``--no-replay`` runs through NullLogger: it must override every public method of the
     ReplayLogger interface with the same parameters (a method it inherited would do the base
@@ -394,6 +431,7 @@ def test_null_logger_accepts_every_call():
         lg.log_links(0.0, "uwb", np.zeros((1, 3)), np.ones((1, 3)), ["los"])
         lg.log_satellites(0.0, "a", [1], [0.0], [1.0], [True])
         assert lg.log_errors(0.0, "s", "a", 0.1, 0.2, 0.3, 0.4, 1.0, 1.0, 8, 0) is None
+        assert lg.log_errors_many(0.0, "s", ["a"], [(0.1, 0.2, 0.3, 0.4, 1.0, 1.0, 8, 0)]) is None
     assert lg.close() is None and lg.abort() is None
 
 
@@ -460,7 +498,7 @@ class _Recorder(ReplayLogger):
                            np.asarray(el_rad).tolist(), np.asarray(los).tolist()))
 
     def log_errors(self, *args):
-        pass
+        self.calls.append(("errors", *args))
 
     def close(self):
         pass
@@ -529,8 +567,11 @@ def _write(path, steps, batched: bool) -> dict[str, list]:
             n_est = k % 4  # 0 to 3 estimates; the second has no finite covariance (no ellipse)
             xy = [[10.0 + k + i, -1.0 * i] for i in range(n_est)]
             lg.log_estimates(st.t_s, SOLUTIONS[k % 2], [f"v{i}" for i in range(n_est)], xy, cov[:n_est])
-            for v in range(2):
-                lg.log_errors(st.t_s, SOLUTIONS[1], VEHICLES[1 + v], *_error_row(k, 1, v))
+            if batched:
+                lg.log_errors_many(st.t_s, SOLUTIONS[1], VEHICLES[1:], [_error_row(k, 1, v) for v in range(2)])
+            else:
+                for v in range(2):
+                    lg.log_errors(st.t_s, SOLUTIONS[1], VEHICLES[1 + v], *_error_row(k, 1, v))
     return _read(path)
 
 
@@ -550,7 +591,7 @@ def _rows_by_entity(chunks):
 
 
 def test_batched_calls_store_the_same_rows_as_per_step_calls(tmp_path):
-    """log_truth_many / log_links_many / log_satellites_many and the deferred ellipses give
+    """log_truth_many / log_links_many / log_satellites_many / log_errors_many and the deferred ellipses give
     the same entities, components, time stamps and values (exactly) as one call per step
     sent at once: empty steps, steps without links, estimates without a finite covariance."""
     steps = _steps()
@@ -568,6 +609,16 @@ def test_batched_calls_store_the_same_rows_as_per_step_calls(tmp_path):
     assert [len(s) for s in strips] == [1, 2] * 3  # steps 1, 3, 5, ...: 1 and 3 estimates, one NaN
 
 
+def test_error_rows_of_the_wrong_shape_are_refused(tmp_path):
+    lg = RerunReplayLogger(tmp_path / "r.rrd")
+    with pytest.raises(ValueError, match="8 values each"):
+        lg.log_errors_many(0.0, "gps", ["a", "b"], [tuple(range(8)), tuple(range(7))])
+    with pytest.raises(ValueError, match="2 vehicle ids and 1 rows"):
+        lg.log_errors_many(0.0, "gps", ["a", "b"], [tuple(range(8))])
+    lg.abort()
+    assert not list(tmp_path.iterdir())
+
+
 def test_default_batch_methods_make_the_per_step_calls():
     """The base-class ``*_many`` make one per-step call per row, in order, with its slice."""
     steps = _steps(4)
@@ -575,12 +626,17 @@ def test_default_batch_methods_make_the_per_step_calls():
     lg.log_truth_many(steps)
     lg.log_links_many([0.1, 0.2], "bearing", [2, 1], np.arange(9.0).reshape(3, 3), np.ones((3, 3)), ["los", "nlos", "rejected"])
     lg.log_satellites_many([0.0, 0.0], ["a", "b"], [1, 2], [3, 4, 5], [0.1, 0.2, 0.3], [0.5, 0.6, 0.7], [True, False, True])
+    lg.log_errors_many(0.3, "gps", ["a", "b"], [(1.0, 2.0, 3.0, 4.0, 5.0, 6.0, 7.0, 8.0), range(8)])
+    with pytest.raises(ValueError, match="2 vehicle ids, 1 rows"):
+        lg.log_errors_many(0.3, "gps", ["a", "b"], [range(8)])
     assert [c[:2] for c in lg.calls[:4]] == [("truth", st.t_s) for st in steps]
     assert lg.calls[4:] == [
         ("links", 0.1, "bearing", [[0.0, 1.0, 2.0], [3.0, 4.0, 5.0]], [[1.0] * 3] * 2, ["los", "nlos"]),
         ("links", 0.2, "bearing", [[6.0, 7.0, 8.0]], [[1.0] * 3], ["rejected"]),
         ("sky", 0.0, "a", [3], [0.1], [0.5], [True]),
         ("sky", 0.0, "b", [4, 5], [0.2, 0.3], [0.6, 0.7], [False, True]),
+        ("errors", 0.3, "gps", "a", 1.0, 2.0, 3.0, 4.0, 5.0, 6.0, 7, 8),
+        ("errors", 0.3, "gps", "b", 0, 1, 2, 3, 4, 5, 6, 7),
     ]
 
 

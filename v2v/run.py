@@ -780,7 +780,7 @@ def _epoch_logger(logger, georef: GeoReference):
             cache["cos_sin"] = (np.cos(g), np.sin(g))
         c, s = cache["cos_sin"]
         x0, y0 = lst.xyz_m[0], lst.xyz_m[1]
-        ids, xy, cov = [], [], []
+        ids, xy, cov, errors = [], [], [], []
         for r in rows:
             if not r["initialized"]:
                 continue
@@ -788,9 +788,9 @@ def _epoch_logger(logger, georef: GeoReference):
             ids.append(v)
             xy.append([x0 + e * c - n * s, y0 + e * s + n * c])
             cov.append([[cee, cen], [cen, cnn]])
-            logger.log_errors(t_s, solution, v, along, across, s_along, s_across, nees, nan, int(used),
-                              int(rej_pr + rej_uwb + rej_b + rej_d))
+            errors.append((along, across, s_along, s_across, nees, nan, int(used), int(rej_pr + rej_uwb + rej_b + rej_d)))
         if ids:
+            logger.log_errors_many(t_s, solution, ids, errors)
             logger.log_estimates(t_s, solution, ids, xy, cov)
 
     return on_epoch

@@ -48,14 +48,9 @@ from __future__ import annotations
 
 import functools
 from collections.abc import Iterable, Sequence
-from typing import TYPE_CHECKING
 
 import rerun as rr
 import rerun.blueprint as rrb
-
-if TYPE_CHECKING:
-    from rerun.blueprint.api import VisualizerLike
-    from rerun.encodings import EntityPathLike
 
 TIMELINE = "sim_time"
 
@@ -110,36 +105,38 @@ def _whole_run() -> dict:
     )
 
 
-def _solution_rgb(i: int) -> tuple[int, int, int]:
-    from v2v.viz.rerun_logger import SOLUTION_RGB
+def series_style(series: str, solution: str, vehicle_id: str, rgb: tuple[int, int, int]) -> rr.SeriesLines:
+    """How the default blueprint draws the error series ``series`` of (``solution``,
+    ``vehicle_id``), ``rgb`` being the solution's colour: the logger logs it static on the
+    series' entity. Each series is in one view of the blueprint (along and across: the
+    vehicle's error tab; NEES; satellites used / rejections; NIS in none), so the entity's
+    own style is what that view shows, and the blueprint carries no per-view overrides
+    (they were 189 of its 342 chunks at N = 10: a third of the replay's closing time).
 
-    return tuple(SOLUTION_RGB[i % len(SOLUTION_RGB)])  # type: ignore[return-value]
+    along, across: a solid line named after the solution; their ``_sigma``: the +-1 sigma
+    bounds faint in the same colour; the rest: one line per (solution, vehicle)."""
+    if series in ("along", "across"):
+        return rr.SeriesLines(names=solution, colors=rgb, widths=1.5)
+    if series in ("along_sigma", "across_sigma"):
+        faint = (*rgb, 80)
+        return rr.SeriesLines(names=[f"{solution} +1σ", f"{solution} -1σ"], colors=[faint, faint], widths=[0.8, 0.8])
+    if series not in ERROR_SERIES:
+        raise ValueError(f"unknown error series {series!r}; expected one of {ERROR_SERIES}")
+    return rr.SeriesLines(names=f"{solution} {vehicle_id}", colors=rgb, widths=1.5)
 
 
 def _error_view(title: str, solutions: Sequence[str], vehicle: str, key: str) -> rrb.TimeSeriesView:
-    """One vehicle's error component for every solution: a solid line per solution named after
-    it, its +-1 sigma bounds faint in the same colour."""
-    contents: list[str] = []
-    overrides: dict = {}
-    for i, s in enumerate(solutions):
-        rgb = _solution_rgb(i)
-        p, ps = error_path(s, vehicle, key), error_path(s, vehicle, key + "_sigma")
-        contents += [f"+ {p}", f"+ {ps}"]
-        overrides[p] = rr.SeriesLines(names=s, colors=rgb, widths=1.5)
-        overrides[ps] = rr.SeriesLines(names=[f"{s} +1σ", f"{s} -1σ"], colors=[(*rgb, 80), (*rgb, 80)], widths=[0.8, 0.8])
+    """One vehicle's error component for every solution (styles: :func:`series_style`)."""
+    contents = [f"+ {error_path(s, vehicle, k)}" for s in solutions for k in (key, key + "_sigma")]
     # +-2 m: lane-level scale; the metres-wide sigma of the first epochs would squash the plot
-    return rrb.TimeSeriesView(origin="/errors", contents=contents, name=f"{title} — {vehicle}", overrides=overrides,
+    return rrb.TimeSeriesView(origin="/errors", contents=contents, name=f"{title} — {vehicle}",
                               plot_legend=rrb.PlotLegend(visible=key == "along"),
                               axis_y=rrb.ScalarAxis(range=(-2.0, 2.0)), **_whole_run())
 
 
-def _series_view(name: str, pairs: Iterable[tuple[str, str]], series: Sequence[str], solutions: Sequence[str]) -> rrb.TimeSeriesView:
+def _series_view(name: str, pairs: Iterable[tuple[str, str]], series: Sequence[str]) -> rrb.TimeSeriesView:
     contents = [f"+ {error_path(s, v, k)}" for s, v in pairs for k in series]
-    overrides: dict[EntityPathLike, VisualizerLike] = {
-        error_path(s, v, k): rr.SeriesLines(names=f"{s} {v}", colors=_solution_rgb(solutions.index(s)))
-        for s, v in pairs for k in series
-    }
-    return rrb.TimeSeriesView(origin="/errors", contents=contents or ["- /**"], name=name, overrides=overrides,
+    return rrb.TimeSeriesView(origin="/errors", contents=contents or ["- /**"], name=name,
                               plot_legend=rrb.PlotLegend(visible=False), **_whole_run())
 
 
@@ -186,9 +183,9 @@ def _default_blueprint(
         right.append(rrb.Tabs(*[_error_view("Along-track error ±1σ [m]", sols, v, "along") for v in vehicle_ids]))
         right.append(rrb.Tabs(*[_error_view("Across-track error ±1σ [m]", sols, v, "across") for v in vehicle_ids]))
     else:
-        right.append(_series_view("Along-track error ±1σ [m]", pairs, ("along", "along_sigma"), sols))
-    right.append(_series_view("NEES (position, 3 dof)", pairs, ("nees",), sols))
-    right.append(_series_view("Satellites used / rejections", pairs, ("n_sats", "rejections"), sols))
+        right.append(_series_view("Along-track error ±1σ [m]", pairs, ("along", "along_sigma")))
+    right.append(_series_view("NEES (position, 3 dof)", pairs, ("nees",)))
+    right.append(_series_view("Satellites used / rejections", pairs, ("n_sats", "rejections")))
     bottom: list[rrb.Container | rrb.View] = []
     if sky_vehicle_ids:
         skies = [rrb.Spatial2DView(origin=sky_path(v), name=f"Sky {v}") for v in sky_vehicle_ids]

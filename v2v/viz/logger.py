@@ -174,6 +174,17 @@ class ReplayLogger(ABC):
             self.log_satellites(t, v, prn[lo : lo + m], az[lo : lo + m], el[lo : lo + m], ok[lo : lo + m])
             lo += m
 
+    def log_errors_many(self, t_s: float, solution: str, vehicle_ids: Sequence[str],
+                        rows: Sequence[Sequence[float]]) -> None:
+        """:meth:`log_errors` of several vehicles at one time: ``rows[j]`` holds the values
+        of ``vehicle_ids[j]`` in :meth:`log_errors`' order (along_m, across_m, sigma_along_m,
+        sigma_across_m, nees, nis, n_sats, rejections)."""
+        if len(rows) != len(vehicle_ids):
+            raise ValueError(f"log_errors_many: {len(vehicle_ids)} vehicle ids, {len(rows)} rows")
+        for v, row in zip(vehicle_ids, rows, strict=True):
+            along, across, s_along, s_across, nees, nis, n_sats, rejections = row
+            self.log_errors(t_s, solution, v, along, across, s_along, s_across, nees, nis, int(n_sats), int(rejections))
+
     @abstractmethod
     def close(self) -> None:
         """Flush everything and publish the recording (atomically). Idempotent."""
@@ -232,6 +243,9 @@ class NullLogger(ReplayLogger):
         n_sats,
         rejections,
     ) -> None:
+        pass
+
+    def log_errors_many(self, t_s, solution, vehicle_ids, rows) -> None:
         pass
 
     def close(self) -> None:

@@ -98,7 +98,6 @@ SOLUTION_RGB = (
     (70, 240, 240),
     (240, 50, 230),
 )
-SIGMA_RGB = (160, 160, 160)
 
 
 @dataclass(frozen=True, kw_only=True)
@@ -443,16 +442,22 @@ class _SceneRows:
         return n_rows
 
 
+# log_errors' value order (along, across, sigma_along, sigma_across, nees, nis, n_sats,
+# rejections) -> bp.ERROR_SERIES order (along, along_sigma, across, across_sigma, ...)
+_N_ERROR_VALUES = 8
+_ERROR_COLUMNS = [0, 2, 1, 3, 4, 5, 6, 7]
+
+
 class _ErrorRows:
     """Error time-series rows of one (solution, vehicle), waiting for ``send_columns``:
-    one value per series of :data:`v2v.viz.blueprint.ERROR_SERIES` per row."""
+    one value per series per row, in :meth:`RerunReplayLogger.log_errors`' order."""
 
     __slots__ = ("paths", "times", "rows")
 
     def __init__(self, paths: tuple[str, ...]):
         self.paths = paths
         self.times: list[float] = []
-        self.rows: list[tuple[float, ...]] = []
+        self.rows: list[Sequence[float]] = []
 
 
 # ---------------------------------------------------------------------------- logger
@@ -874,45 +879,52 @@ class RerunReplayLogger(ReplayLogger):
         rejections: int,
     ) -> None:
         self._check_open()
-        buf = self._errors.get((solution, vehicle_id))
-        if buf is None:
-            self._solutions.setdefault(solution)
-            self._error_vehicles.setdefault(vehicle_id)
-            paths = tuple(bp.error_path(solution, vehicle_id, series) for series in bp.ERROR_SERIES)
-            for path, series in zip(paths, bp.ERROR_SERIES, strict=True):
-                self._log_series_style(path, solution, series)
-            buf = self._errors[(solution, vehicle_id)] = _ErrorRows(paths)
+        buf = self._errors.get((solution, vehicle_id)) or self._error_rows(solution, vehicle_id)
         buf.times.append(float(t_s))
-        buf.rows.append(
-            (
-                float(along_m),
-                float(sigma_along_m),
-                float(across_m),
-                float(sigma_across_m),
-                float(nees),
-                float(nis),
-                float(n_sats),
-                float(rejections),
-            )
-        )  # in bp.ERROR_SERIES order
+        buf.rows.append((float(along_m), float(across_m), float(sigma_along_m), float(sigma_across_m), float(nees),
+                         float(nis), float(n_sats), float(rejections)))  # (log_errors' order; see _flush_series)
         self._buffered_rows += 1
         if self._buffered_rows >= self.params.flush_rows:
             self._flush_series()
 
-    def _log_series_style(self, path: str, solution: str, series: str) -> None:
-        rgb = self._color_of(solution)
-        if series.endswith("_sigma"):
-            style = rr.SeriesLines(colors=[SIGMA_RGB, SIGMA_RGB], names=["+1σ", "-1σ"], widths=[1.0, 1.0])
-        else:
-            style = rr.SeriesLines(colors=rgb, names=series, widths=1.5)
-        self._rec.log(path, style, static=True)
+    def log_errors_many(self, t_s: float, solution: str, vehicle_ids: Sequence[str],
+                        rows: Sequence[Sequence[float]]) -> None:
+        """:meth:`log_errors` of several vehicles at one time, the rows stored as given
+        (numbers; made float64 when sent)."""
+        self._check_open()
+        if len(rows) != len(vehicle_ids) or any(len(r) != _N_ERROR_VALUES for r in rows):
+            raise ValueError(f"log_errors_many: {len(vehicle_ids)} vehicle ids and {len(rows)} rows "
+                             f"of {_N_ERROR_VALUES} values each expected")
+        t = float(t_s)
+        errors = self._errors
+        for v, row in zip(vehicle_ids, rows, strict=True):
+            buf = errors.get((solution, v)) or self._error_rows(solution, v)
+            buf.times.append(t)
+            buf.rows.append(row)
+        self._buffered_rows += len(rows)
+        if self._buffered_rows >= self.params.flush_rows:
+            self._flush_series()
+
+    def _error_rows(self, solution: str, vehicle_id: str) -> _ErrorRows:
+        """The new series buffer of (solution, vehicle), its styles logged."""
+        self._solutions.setdefault(solution)
+        self._error_vehicles.setdefault(vehicle_id)
+        paths = tuple(bp.error_path(solution, vehicle_id, series) for series in bp.ERROR_SERIES)
+        for path, series in zip(paths, bp.ERROR_SERIES, strict=True):
+            self._log_series_style(path, solution, vehicle_id, series)
+        buf = self._errors[(solution, vehicle_id)] = _ErrorRows(paths)
+        return buf
+
+    def _log_series_style(self, path: str, solution: str, vehicle_id: str, series: str) -> None:
+        """The series' style as the default blueprint shows it (:func:`v2v.viz.blueprint.series_style`), static."""
+        self._rec.log(path, bp.series_style(series, solution, vehicle_id, self._color_of(solution)), static=True)
 
     def _flush_series(self) -> None:
         for buf in self._errors.values():
             if not buf.times:
                 continue
             n = len(buf.times)
-            values = np.array(buf.rows, dtype=np.float64)  # (n, len(ERROR_SERIES))
+            values = np.array(buf.rows, dtype=np.float64)[:, _ERROR_COLUMNS]  # (n, len(ERROR_SERIES))
             # rounded nanoseconds, like the scene columns (a float array would be truncated)
             ns = np.round(np.asarray(buf.times, dtype=np.float64) * 1e9).astype(np.int64).astype("timedelta64[ns]")
             index = [rr.TimeColumn(bp.TIMELINE, duration=ns)]
