@@ -263,8 +263,10 @@ def _run_scenario(scenario: Scenario, out_dir: Path, *, quiet: bool, replay: boo
     from v2v.world.occlusion import OcclusionGeometry
 
     wall0 = time.perf_counter()
+    # stages (wall s): the replay's share is replay_static_truth (truth, links, sky) plus replay
+    # (world, estimates and errors, closing the file); the estimates' logging is not in estimation
     timing: dict[str, float] = dict.fromkeys(("traffic", "world", "gnss", "uwb", "bearing", "replay_static_truth",
-                                              "estimation", "metrics_io"), 0.0)
+                                              "estimation", "replay", "metrics_io"), 0.0)
     net = resolve_network(scenario)
     seeds = child_seeds(scenario.seed)
     gps_start = float(utc_to_gps_s(scenario.start_utc))
@@ -292,7 +294,7 @@ def _run_scenario(scenario: Scenario, out_dir: Path, *, quiet: bool, replay: boo
         truth = ParquetStream(tmp / "truth.parquet", batch_rows=10_000)  # also flushed at every chunk
         files = NetFiles(net_path=net.net_path, poly_paths=net.poly_paths, route_edges=net.route_edges)
         logger = _make_logger(tmp, replay)
-        on_epoch = _epoch_logger(logger, net.georef) if replay else None
+        on_epoch = _epoch_logger(logger, net.georef, timing) if replay else None
         acc = _RunAccumulators()
         fault_log = None
         frng = None
@@ -314,8 +316,10 @@ def _run_scenario(scenario: Scenario, out_dir: Path, *, quiet: bool, replay: boo
             step = sim.snapshot()
             vehicles = sim.cluster_vehicle_ids()
             lanes, lane_widths = sim.lane_geometry()
-            timing["traffic"] += time.perf_counter() - t0
+            t1 = time.perf_counter()
+            timing["traffic"] += t1 - t0
             logger.log_world(lanes, lane_widths, world.buildings, world.foliage, net.georef)
+            timing["replay"] += time.perf_counter() - t1
             _say(quiet, f"{scenario.name}: {len(vehicles)} vehicles, {scenario.duration_s:.0f} s in chunks of "
                         f"{chunk if math.isfinite(chunk) else scenario.duration_s:.0f} s ...")
             _say(quiet or n_filters == 0, f"filtering: {len(scenario.solutions)} solution(s) x {len(scenario.clusters)} cluster(s)")
@@ -417,8 +421,9 @@ def _run_scenario(scenario: Scenario, out_dir: Path, *, quiet: bool, replay: boo
                 replay_state.add(logger, steps, uwb, bearings, epochs)
                 replay_state.flush(logger, np.inf if final else known)
                 timing["replay_static_truth"] += time.perf_counter() - t0
-                # exchange and filters
+                # exchange and filters (less the estimates' logging: on_epoch adds it to replay)
                 t0 = time.perf_counter()
+                replay_before = timing["replay"]
                 for cl in clusters:
                     for t, eps in epochs:
                         cl.stream.add_gnss(t, {v: e for v, e in eps.items() if v in cl.members})
@@ -444,7 +449,7 @@ def _run_scenario(scenario: Scenario, out_dir: Path, *, quiet: bool, replay: boo
                                 pickle.dump(pd.DataFrame(rows), f, protocol=pickle.HIGHEST_PROTOCOL)
                     del cl.events[:consumed]
                     del cl.out_times[:ready]
-                timing["estimation"] += time.perf_counter() - t0
+                timing["estimation"] += time.perf_counter() - t0 - (timing["replay"] - replay_before)
                 # forget the truth no cluster / the replay needs any more
                 need = min([cl.out_times[0] for cl in clusters if cl.out_times] + [replay_state.oldest()], default=np.inf)
                 for key in [k for k, st in window.items() if st.t_s < need - 1e-6]:
@@ -482,6 +487,9 @@ def _run_scenario(scenario: Scenario, out_dir: Path, *, quiet: bool, replay: boo
             process(final=True)
             truth.close()
             window.clear()
+            t0 = time.perf_counter()
+            logger.close()  # (the with block's exit: a no-op now, or abort on an error before)
+            timing["replay"] += time.perf_counter() - t0
             records_meta = []
             membership: dict[str, list[dict[str, Any]]] = {}
             filter_counters: dict[str, dict[str, int]] = {}
@@ -763,8 +771,9 @@ def _log_truth_and_links(logger, steps, uwb, bearings, sky_every: dict[int, Any]
     return steps[-1].t_s
 
 
-def _epoch_logger(logger, georef: GeoReference):
-    """Callback logging each solution's estimates (net XY, around the lead's true antenna) and errors."""
+def _epoch_logger(logger, georef: GeoReference, timing: dict[str, float]):
+    """Callback logging each solution's estimates (net XY, around the lead's true antenna) and
+    errors; its time is added to ``timing["replay"]``."""
     from operator import itemgetter
 
     cache: dict[str, tuple[float, float]] = {}  # cos, sin of the grid convergence at the first lead position
@@ -774,6 +783,13 @@ def _epoch_logger(logger, georef: GeoReference):
     nan = float("nan")
 
     def on_epoch(t_s: float, solution: str, ekf, step: TrafficStep, rows: list[dict[str, Any]]) -> None:
+        t0 = time.perf_counter()
+        try:
+            log_epoch(t_s, solution, ekf, step, rows)
+        finally:
+            timing["replay"] += time.perf_counter() - t0
+
+    def log_epoch(t_s: float, solution: str, ekf, step: TrafficStep, rows: list[dict[str, Any]]) -> None:
         lst = step.vehicles[ekf.layout.lead]
         if not cache:
             g = georef.grid_convergence_rad(float(lst.xyz_m[0]), float(lst.xyz_m[1]))
