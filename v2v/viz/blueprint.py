@@ -37,7 +37,9 @@ path                                archetype        content
 ==================================  ===============  ======================================
 
 Colours: line of sight green, NLOS orange, rejected red; lead vehicle orange, other
-cluster vehicles blue, background traffic grey.
+cluster vehicles blue, background traffic grey. Each error series carries its own style
+(a static ``SeriesLines`` on its entity, :func:`series_style`: the solution's colour), so the
+blueprint needs no per-view overrides.
 
 The default blueprint: the 3-D world large on the left; on the right, top to bottom,
 along-track error with ±σ, across-track error with ±σ, NEES/NIS, satellites/rejections,
