@@ -36,6 +36,7 @@ from __future__ import annotations
 
 import argparse
 import json
+import math
 import os
 import statistics
 import subprocess
@@ -90,7 +91,8 @@ def run_case(n: int, duration: float, replay_on: bool, repeat: int, out: Path) -
     """One fresh process: start-up (interpreter + imports), a cold run (compiled kernels
     loaded, lazy imports paid), then ``repeat`` warm runs with the replay off (and each paired
     with the same seed with the replay on, before it for odd pairs); ``warm`` / ``warm_replay``
-    are the fastest, ``replay_share_paired_median`` the median of the pairs' shares."""
+    are the fastest, ``replay_share_paired_median`` the median of the pairs' shares,
+    ``replay_share_in_run_median`` the median of :func:`_in_run_share` over the replay-on runs."""
     t0 = time.perf_counter()
     p = subprocess.run([sys.executable, "-c", CASE, str(n), "1" if replay_on else "0", str(out),
                         json.dumps(overrides(n, duration)), str(repeat)],
@@ -110,7 +112,9 @@ def _in_run_share(c: dict) -> float:
     """The replay's stages (``timing_s`` ``replay`` + ``replay_static_truth``: the time spent
     in the replay's code, timed inside the run) over the run's wall time."""
     t = c["timing_s"]
-    return (t.get("replay", 0.0) + t["replay_static_truth"]) / c["wall_s"]
+    if "replay" not in t:  # (a revision before the replay stage: its share is not known)
+        return float("nan")
+    return (t["replay"] + t["replay_static_truth"]) / c["wall_s"]
 
 
 REFERENCE = r"""
@@ -215,7 +219,8 @@ def main(argv: list[str] | None = None) -> int:
             on = r.get("warm_replay")
             share = f"{1.0 - r['warm']['wall_s'] / on['wall_s']:13.1%}" if on else f"{'-':>13s}"
             paired = f"{r['replay_share_paired_median']:14.1%}" if on else f"{'-':>14s}"
-            in_run = f"{r['replay_share_in_run_median']:14.1%}" if on else f"{'-':>14s}"
+            in_run = f"{r['replay_share_in_run_median']:14.1%}" if on and math.isfinite(
+                r["replay_share_in_run_median"]) else f"{'-':>14s}"
             rtf_on = f"{on['rtf']:9.1f}" if on else f"{'-':>9s}"
             print(f"{r['n']:4d} {r['cold']['rtf']:10.1f} {r['warm']['rtf']:10.1f} {rtf_on} {share} {paired} {in_run}")
         print("replay share: 1 - fastest off / fastest on; paired median: the median over the seeds of "

@@ -206,6 +206,16 @@ def test_error_series_round_trip(run, s, v):
     ]  # [+1 sigma, -1 sigma]
     _, rej = _column(chunks[bp.error_path(sol, vid, "rejections")], "Scalars:scalars")
     assert [r[0] for r in rej] == [float(k % 3) for k in range(N_STEPS)]
+    # every series, by name, against log_errors' arguments (along, across, sigma_along,
+    # sigma_across, nees, nis, n_sats, rejections)
+    rows = [_error_row(k, s, v) for k in range(N_STEPS)]
+    want = {"along": [[r[0]] for r in rows], "across": [[r[1]] for r in rows],
+            "along_sigma": [[r[2], -r[2]] for r in rows], "across_sigma": [[r[3], -r[3]] for r in rows],
+            "nees": [[r[4]] for r in rows], "nis": [[r[5]] for r in rows], "n_sats": [[float(r[6])] for r in rows],
+            "rejections": [[float(r[7])] for r in rows]}
+    assert set(want) == set(bp.ERROR_SERIES)
+    for series, values in want.items():
+        assert _column(chunks[bp.error_path(sol, vid, series)], "Scalars:scalars")[1] == values, series
 
 
 def test_static_world_is_static_and_building_mesh_is_the_prism(run):
@@ -373,7 +383,6 @@ def test_blueprint_is_stored_with_the_views(run):
     assert set(selections) == expected
 
 
-
 def test_each_error_series_is_styled_on_its_entity_and_shown_in_one_view(run):
     """The blueprint has no per-view overrides: an error series' look is the style logged
     static on its entity. That equals a per-view style only if no series is in two views,
@@ -382,16 +391,21 @@ def test_each_error_series_is_styled_on_its_entity_and_shown_in_one_view(run):
     the solution (along/across), its +-1 sigma bounds at alpha 80, or per (solution, vehicle)."""
     path, chunks = run
     reader = RrdReader(path)
-    queries = []
+    queries, origins = {}, {}  # view path -> its content query, its space origin
     for c in reader.stream(store=reader.blueprints()[0]):
         assert "/overrides/" not in c.entity_path, c.entity_path
         rb = c.to_record_batch()
         if "ViewContents:query" in rb.schema.names:
-            queries.append(rb.column("ViewContents:query").to_pylist()[0])
+            queries[c.entity_path.removesuffix("/ViewContents")] = rb.column("ViewContents:query").to_pylist()[0]
+        if "ViewBlueprint:space_origin" in rb.schema.names:
+            origins[c.entity_path] = rb.column("ViewBlueprint:space_origin").to_pylist()[0][0]
+    assert set(queries) == set(origins) and len(queries) >= 6
     shown: dict[str, int] = defaultdict(int)
-    for q in queries:
+    for view, q in queries.items():  # ($origin: the filter engine here does not expand it)
+        q = [line.replace("$origin", origins[view].rstrip("/")) for line in q]
         for p in {c.entity_path for c in RrdReader(path).stream().filter(content=q)}:
             shown[p] += 1
+    assert shown["/" + bp.TRUTH] == 1  # the world view ($origin/**) is counted too
     for s, sol in enumerate(SOLUTIONS):
         r, g, b = SOLUTION_RGB[s]
         solid, faint = (r << 24) | (g << 16) | (b << 8) | 255, (r << 24) | (g << 16) | (b << 8) | 80
@@ -408,6 +422,7 @@ def test_each_error_series_is_styled_on_its_entity_and_shown_in_one_view(run):
                     assert style == {"names": [f"{sol} +1σ", f"{sol} -1σ"], "colors": [faint, faint], "widths": [w08, w08]}
                 else:
                     assert style == {"names": [f"{sol} {vid}"], "colors": [solid], "widths": [1.5]}
+
 
 def test_null_logger_accepts_every_call():
     """``--no-replay`` runs through NullLogger: it must override every public method of the
@@ -611,10 +626,16 @@ def test_batched_calls_store_the_same_rows_as_per_step_calls(tmp_path):
 
 def test_error_rows_of_the_wrong_shape_are_refused(tmp_path):
     lg = RerunReplayLogger(tmp_path / "r.rrd")
-    with pytest.raises(ValueError, match="8 values each"):
+    with pytest.raises(ValueError, match="8 numbers each"):
         lg.log_errors_many(0.0, "gps", ["a", "b"], [tuple(range(8)), tuple(range(7))])
     with pytest.raises(ValueError, match="2 vehicle ids and 1 rows"):
         lg.log_errors_many(0.0, "gps", ["a", "b"], [tuple(range(8))])
+    with pytest.raises(ValueError, match="8 numbers each"):
+        lg.log_errors_many(0.0, "gps", ["a"], [("x",) * 8])
+    row = [0.0] * 8
+    lg.log_errors_many(0.0, "gps", ["a"], [row])
+    row[0] = 5.0  # the row was copied when logged
+    assert lg._errors[("gps", "a")].rows == [[0.0] * 8]
     lg.abort()
     assert not list(tmp_path.iterdir())
 
@@ -627,7 +648,7 @@ def test_default_batch_methods_make_the_per_step_calls():
     lg.log_links_many([0.1, 0.2], "bearing", [2, 1], np.arange(9.0).reshape(3, 3), np.ones((3, 3)), ["los", "nlos", "rejected"])
     lg.log_satellites_many([0.0, 0.0], ["a", "b"], [1, 2], [3, 4, 5], [0.1, 0.2, 0.3], [0.5, 0.6, 0.7], [True, False, True])
     lg.log_errors_many(0.3, "gps", ["a", "b"], [(1.0, 2.0, 3.0, 4.0, 5.0, 6.0, 7.0, 8.0), range(8)])
-    with pytest.raises(ValueError, match="2 vehicle ids, 1 rows"):
+    with pytest.raises(ValueError, match="2 vehicle ids and 1 rows of 8 numbers each"):
         lg.log_errors_many(0.3, "gps", ["a", "b"], [range(8)])
     assert [c[:2] for c in lg.calls[:4]] == [("truth", st.t_s) for st in steps]
     assert lg.calls[4:] == [

@@ -54,8 +54,34 @@ def test_stage_timings_are_disjoint_and_the_replay_has_its_own(short_run, tmp_pa
     assert sum(v for k, v in t.items() if k != "measurements_io") <= summary["wall_s"]
     assert t["replay"] > 0.0 and t["replay_static_truth"] > 0.0
     off = run_scenario(load_scenario(None, SHORT[:1]), tmp_path / "off", quiet=True, replay=False).summary["timing_s"]
-    assert off["replay"] == 0.0 and off["replay_static_truth"] == 0.0
+    assert off["replay"] == 0.0 and off["replay_static_truth"] == 0.0  # (not timed without a replay)
     assert sum(off.values()) > 0.0
+
+
+def test_estimates_logging_is_timed_as_replay_not_estimation(tmp_path, monkeypatch):
+    """The per-epoch replay logging runs inside the filter loop but is timed into the replay
+    stage: with every log_errors_many call slowed by 20 ms, the replay stage holds at least
+    calls x 20 ms, and estimation grows by well under that against the same run without replay."""
+    import time
+
+    from v2v.viz.rerun_logger import RerunReplayLogger
+
+    calls = []
+    orig = RerunReplayLogger.log_errors_many
+
+    def slow(self, *args, **kwargs):
+        calls.append(1)
+        time.sleep(0.02)
+        return orig(self, *args, **kwargs)
+
+    monkeypatch.setattr(RerunReplayLogger, "log_errors_many", slow)
+    sc = load_scenario(None, ["duration_s=3.0", 'solutions=[{name="GPS", sensors=["gnss"]}]'])
+    on = run_scenario(sc, tmp_path / "on", quiet=True, replay=True).summary["timing_s"]
+    off = run_scenario(sc, tmp_path / "off", quiet=True, replay=False).summary["timing_s"]
+    slept = 0.02 * len(calls)
+    assert len(calls) >= 25  # one per output epoch (10 Hz, 3 s)
+    assert on["replay"] >= slept
+    assert on["estimation"] - off["estimation"] < 0.5 * slept
 
 
 def test_epochs_table_is_consistent_with_truth(short_run):
@@ -89,6 +115,38 @@ def test_replay_has_the_run(short_run):
     assert any(p.startswith("/world/buildings") for p in paths)
     assert any(p.startswith("/world/vehicles/truth") for p in paths)
     assert any(p.startswith("/errors/GPS/c1.1/along") for p in paths)
+
+
+def test_replay_error_series_are_the_epochs_table(short_run):
+    """Each error series in the replay is the epochs table's column of that name (along,
+    across, their sigmas (+sigma, -sigma), NEES, SD pseudoranges used, all rejections) at the
+    same times, for every initialized epoch of each solution and vehicle."""
+    from rerun.chunk import RrdReader
+
+    from v2v.viz.blueprint import error_path
+
+    out, _ = short_run
+    ep = pd.read_parquet(out / "epochs.parquet")
+    ep = ep[ep.initialized]
+    series: dict[str, dict[float, list]] = {}
+    for c in RrdReader(str(out / "replay.rrd")).stream():
+        if c.is_static or not c.entity_path.startswith("/errors/"):
+            continue
+        rb = c.to_record_batch()
+        t = rb.column("sim_time").cast("int64").to_pylist()
+        v = rb.column("Scalars:scalars").to_pylist()
+        series.setdefault(c.entity_path, {}).update({round(ns * 1e-9, 6): x for ns, x in zip(t, v, strict=True)})
+    rejected = ep[["rejected_pr", "rejected_uwb", "rejected_bearing", "rejected_doppler"]].sum(axis=1)
+    expected = {"along": ep.along_err_m, "across": ep.across_err_m, "nees": ep.nees_pos, "n_sats": ep.used_pr,
+                "rejections": rejected}
+    for (sol, veh), g in ep.groupby(["solution", "vehicle"]):
+        times = g.t_s.round(6)
+        for name, col in expected.items():
+            got = series[error_path(sol, veh, name)]
+            assert [got[t] for t in times] == [[float(x)] for x in col[g.index]], (sol, veh, name)
+        for name, col in (("along_sigma", g.sigma_along_m), ("across_sigma", g.sigma_across_m)):
+            got = series[error_path(sol, veh, name)]
+            assert [got[t] for t in times] == [[float(x), -float(x)] for x in col], (sol, veh, name)
 
 
 def _tables(out):

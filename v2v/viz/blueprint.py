@@ -42,7 +42,7 @@ cluster vehicles blue, background traffic grey. Each error series carries its ow
 blueprint needs no per-view overrides.
 
 The default blueprint: the 3-D world large on the left; on the right, top to bottom,
-along-track error with ±σ, across-track error with ±σ, NEES/NIS, satellites/rejections,
+along-track error with ±σ, across-track error with ±σ, NEES, satellites/rejections,
 then a row with the sky plots (one tab per vehicle) and a map of the geodetic truth.
 """
 

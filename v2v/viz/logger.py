@@ -179,8 +179,9 @@ class ReplayLogger(ABC):
         """:meth:`log_errors` of several vehicles at one time: ``rows[j]`` holds the values
         of ``vehicle_ids[j]`` in :meth:`log_errors`' order (along_m, across_m, sigma_along_m,
         sigma_across_m, nees, nis, n_sats, rejections)."""
-        if len(rows) != len(vehicle_ids):
-            raise ValueError(f"log_errors_many: {len(vehicle_ids)} vehicle ids, {len(rows)} rows")
+        if len(rows) != len(vehicle_ids) or any(len(r) != 8 for r in rows):
+            raise ValueError(f"log_errors_many: {len(vehicle_ids)} vehicle ids and {len(rows)} rows "
+                             "of 8 numbers each expected")
         for v, row in zip(vehicle_ids, rows, strict=True):
             along, across, s_along, s_across, nees, nis, n_sats, rejections = row
             self.log_errors(t_s, solution, v, along, across, s_along, s_across, nees, nis, int(n_sats), int(rejections))

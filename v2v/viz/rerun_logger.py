@@ -889,19 +889,22 @@ class RerunReplayLogger(ReplayLogger):
 
     def log_errors_many(self, t_s: float, solution: str, vehicle_ids: Sequence[str],
                         rows: Sequence[Sequence[float]]) -> None:
-        """:meth:`log_errors` of several vehicles at one time, the rows stored as given
-        (numbers; made float64 when sent)."""
+        """:meth:`log_errors` of several vehicles at one time, the rows copied as float64 now."""
         self._check_open()
-        if len(rows) != len(vehicle_ids) or any(len(r) != _N_ERROR_VALUES for r in rows):
+        try:
+            values = np.array(rows, dtype=np.float64)
+        except (TypeError, ValueError) as exc:
+            raise ValueError(f"log_errors_many: rows must be {_N_ERROR_VALUES} numbers each ({exc})") from None
+        if values.shape != (len(vehicle_ids), _N_ERROR_VALUES):
             raise ValueError(f"log_errors_many: {len(vehicle_ids)} vehicle ids and {len(rows)} rows "
-                             f"of {_N_ERROR_VALUES} values each expected")
+                             f"of {_N_ERROR_VALUES} numbers each expected, got rows of shape {values.shape}")
         t = float(t_s)
         errors = self._errors
-        for v, row in zip(vehicle_ids, rows, strict=True):
+        for v, row in zip(vehicle_ids, values.tolist(), strict=True):
             buf = errors.get((solution, v)) or self._error_rows(solution, v)
             buf.times.append(t)
             buf.rows.append(row)
-        self._buffered_rows += len(rows)
+        self._buffered_rows += len(vehicle_ids)
         if self._buffered_rows >= self.params.flush_rows:
             self._flush_series()
 
