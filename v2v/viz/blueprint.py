@@ -113,7 +113,8 @@ def series_style(series: str, solution: str, vehicle_id: str, rgb: tuple[int, in
     series' entity. Each series is in one view of the blueprint (along and across: the
     vehicle's error tab; NEES; satellites used / rejections; NIS in none), so the entity's
     own style is what that view shows, and the blueprint carries no per-view overrides
-    (they were 189 of its 342 chunks at N = 10: a third of the replay's closing time).
+    (they were 189 of its 342 chunks at N = 10; sending, flushing and closing the blueprint
+    took 55.9 ms with them, 21.4 ms without).
 
     along, across: a solid line named after the solution; their ``_sigma``: the +-1 sigma
     bounds faint in the same colour; the rest: one line per (solution, vehicle)."""
