@@ -220,3 +220,28 @@ def test_uwb_bias_step_without_uwb_states_is_not_detected_but_biases_the_baselin
     nees_before = np.mean([x for t, _, x in rec if 5.0 <= t < 15.0])
     nees_after = np.mean([x for t, _, x in rec if 20.0 <= t < 30.0])
     assert nees_before < chi2.ppf(0.999, 3) < nees_after, (nees_before, nees_after)
+
+
+def test_nis_window_rejection_count_is_the_windows_own():
+    """NisWindow keeps the number of rejected tests among the last ``size`` (the divergence
+    test's numerator) as tests enter and push the oldest out; after every operation of a
+    random sequence (single tests, runs of accepted ones longer and shorter than the window)
+    it equals a count over the window's contents, which are the last ``size`` tests given."""
+    from collections import deque
+
+    from v2v.estimation.filter import NisWindow
+
+    rng = np.random.default_rng(5)
+    for size in (1, 3, 50):
+        w, ref = NisWindow(size), deque(maxlen=size)
+        for _ in range(2000):
+            if rng.random() < 0.5:
+                ok = bool(rng.random() < 0.7)
+                w.add(float(rng.random()), ok)
+                ref.append(ok)
+            else:
+                nis = rng.random(int(rng.integers(0, 2 * size + 2))).tolist()
+                w.add_accepted(nis)
+                ref.extend([True] * len(nis))
+            assert [ok for _, ok in w.tests] == list(ref)
+            assert w.rejected == sum(not ok for ok in ref)

@@ -448,6 +448,38 @@ def cond_sym(a: F64) -> float:
     return c if c == c else math.inf  # 0 / 0 of a zero matrix
 
 
+class NisWindow:
+    """The last ``size`` SD-pseudorange innovation tests of one vehicle, ``(NIS, accepted)``
+    oldest first (:attr:`tests`), and how many of them were rejected (:attr:`rejected`, kept
+    up to date as tests enter and leave: the divergence test reads it instead of counting
+    the window every epoch)."""
+
+    __slots__ = ("tests", "rejected")
+
+    def __init__(self, size: int) -> None:
+        self.tests: deque[tuple[float, bool]] = deque(maxlen=size)
+        self.rejected = 0
+
+    def __len__(self) -> int:
+        return len(self.tests)
+
+    def add(self, nis: float, accepted: bool) -> None:
+        t = self.tests
+        if len(t) == t.maxlen and not t[0][1]:  # the oldest, a rejection, leaves
+            self.rejected -= 1
+        t.append((nis, accepted))
+        if not accepted:
+            self.rejected += 1
+
+    def add_accepted(self, nis: list[float]) -> None:
+        """Accepted tests with these NIS values, in order."""
+        t = self.tests
+        leaving = len(t) + len(nis) - (t.maxlen or 0)  # the oldest tests pushed out
+        if leaving > 0 and self.rejected:
+            self.rejected -= sum(1 for _, ok in itertools.islice(t, min(leaving, len(t))) if not ok)
+        t.extend(zip(nis, repeat(True)))
+
+
 class ClusterFilterBase(ABC):
     """Sequencing, gating and initialization shared by both engines.
 
@@ -464,7 +496,7 @@ class ClusterFilterBase(ABC):
         self._k = self.config.gate_k
         self.counters: dict[str, int] = {}
         self.integrity_available: dict[str, bool] = {}
-        self._nis_window: dict[str, deque[tuple[float, bool]]] = {}
+        self._nis_window: dict[str, NisWindow] = {}
         self._vehicle_ready = {v: False for v in layout.vehicles}
         self._azimuth_ready = {v: False for v in layout.azimuth_vehicles}
         pc = self.config.phase
@@ -631,7 +663,9 @@ class ClusterFilterBase(ABC):
         for v, *_ in pr_jobs:
             if self._window_diverged(v):
                 self._reset_vehicle(v)  # re-initialized by the next epoch's snapshot
-        if self.config.use_pair_sd:
+        # pair SDs need a satellite the lead does not see (finite); none when the pairing kept
+        # every satellite of every vehicle (the usual open-sky epoch): nothing to look for
+        if self.config.use_pair_sd and not (have and np.array_equal(np.diff(moff_v), np.diff(row0))):
             infos += self._pair_sds({v: e for v, e in epochs.items() if v not in skipped} if skipped else epochs,
                                     lead_ep, geo)
         if self.config.use_doppler and lead_ep is not None:
@@ -914,26 +948,32 @@ class ClusterFilterBase(ABC):
         self._count("clock_jump_detected")
         return True
 
+    def _window(self, v: str) -> NisWindow:
+        w = self._nis_window.get(v)
+        if w is None:
+            w = self._nis_window[v] = NisWindow(self.config.divergence_window)
+        return w
+
     def _record_test(self, v: str, info: UpdateInfo) -> None:
-        w = self._nis_window.setdefault(v, deque(maxlen=self.config.divergence_window))
-        w.append((info.nis, info.accepted))
+        self._window(v).add(info.nis, info.accepted)
 
     def _record_tests(self, v: str, infos: Sequence[UpdateInfo]) -> None:
         """:meth:`_record_test` of several records in order."""
         if isinstance(infos, UpdateBatch):
             self._record_accepted_nis(v, infos.nis.tolist())
         else:
-            self._nis_window.setdefault(v, deque(maxlen=self.config.divergence_window)).extend(map(_nis_accepted, infos))
+            w = self._window(v)
+            for nis, accepted in map(_nis_accepted, infos):
+                w.add(nis, accepted)
 
     def _record_accepted_nis(self, v: str, nis: list[float]) -> None:
         """:meth:`_record_tests` of accepted records given by their NIS values."""
-        w = self._nis_window.setdefault(v, deque(maxlen=self.config.divergence_window))
-        w.extend(zip(nis, repeat(True)))
+        self._window(v).add_accepted(nis)
 
     def window_mean_nis(self, v: str) -> float:
         """Mean NIS of the last ``divergence_window`` SD-pseudorange tests of ``v`` (NaN if none)."""
         w = self._nis_window.get(v)
-        return float(np.mean([n for n, _ in w])) if w else float("nan")
+        return float(np.mean([n for n, _ in w.tests])) if w else float("nan")
 
     def window_nis_band(self, v: str, prob: float = 0.999) -> tuple[float, float]:
         """Two-sided ``prob`` chi-square band of :meth:`window_mean_nis` under H0."""
@@ -944,10 +984,9 @@ class ClusterFilterBase(ABC):
 
     def _window_diverged(self, v: str) -> bool:
         w = self._nis_window.get(v)
-        if w is None or len(w) < self.config.divergence_window:
+        if w is None or len(w.tests) < self.config.divergence_window:
             return False
-        n_rej = len(w) - sum(map(itemgetter(1), w))  # = the tests with ok False
-        return n_rej > self.config.divergence_reject_fraction * len(w)
+        return w.rejected > self.config.divergence_reject_fraction * len(w.tests)
 
     def _reset_vehicle(self, v: str) -> None:
         """Back to the uninitialized prior; the next GNSS snapshot re-initializes the block."""
