@@ -878,14 +878,8 @@ class RerunReplayLogger(ReplayLogger):
         n_sats: int,
         rejections: int,
     ) -> None:
-        self._check_open()
-        buf = self._errors.get((solution, vehicle_id)) or self._error_rows(solution, vehicle_id)
-        buf.times.append(float(t_s))
-        buf.rows.append((float(along_m), float(across_m), float(sigma_along_m), float(sigma_across_m), float(nees),
-                         float(nis), float(n_sats), float(rejections)))  # (log_errors' order; see _flush_series)
-        self._buffered_rows += 1
-        if self._buffered_rows >= self.params.flush_rows:
-            self._flush_series()
+        self.log_errors_many(t_s, solution, [vehicle_id], [(along_m, across_m, sigma_along_m, sigma_across_m, nees,
+                                                             nis, n_sats, rejections)])
 
     def log_errors_many(self, t_s: float, solution: str, vehicle_ids: Sequence[str],
                         rows: Sequence[Sequence[float]]) -> None:
