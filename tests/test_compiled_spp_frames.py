@@ -9,6 +9,7 @@ condition number can decide. Seeded; no SUMO.
 from __future__ import annotations
 
 import math
+from types import SimpleNamespace
 
 import numpy as np
 import pytest
@@ -22,7 +23,7 @@ from v2v.frames import (
     wrap_angle_scalar,
 )
 from v2v.sensors.gnss.atmosphere import klobuchar_delay_s, saastamoinen_zenith_delay_m, tropo_mapping
-from v2v.sensors.gnss.spp import SppConfig, SppStatus, solve_spp
+from v2v.sensors.gnss.spp import SppConfig, SppStatus, solve_spp, spp_from_epoch, spp_position
 from v2v.sensors.measurements import SPEED_OF_LIGHT_MPS
 from v2v.smallmat import cond2_symmetric, solve_small
 
@@ -115,3 +116,31 @@ def test_spp_singular_geometry_and_dops():
     r = solve_spp(one, np.linalg.norm(one - truth, axis=1), np.zeros(4), x0_ecef_m=truth + 10.0)
     assert r.status == SppStatus.SINGULAR_GEOMETRY and not r.valid
     assert np.array_equal(r.position_ecef_m, truth + 10.0)  # the a priori position, no NaN
+
+
+def test_spp_position_is_the_valid_solutions_position_else_none():
+    """The lead's base (:func:`spp_position`) is :func:`spp_from_epoch`'s position exactly when
+    that solution is valid: a noiseless fix (the truth), a blunder the residual test flags but
+    cannot exclude (``exclude=False``: invalid), and a singular geometry (invalid)."""
+    truth = geodetic_to_ecef(np.radians(51.08), np.radians(-114.13), 1100.0)
+    sv = _sky(truth)
+
+    def epoch(sv_pos, pr):
+        return SimpleNamespace(sv_pos_ecef_m=sv_pos, pseudorange_m=pr, sv_clock_m=np.zeros(len(pr)), t_s=12.3)
+
+    ok = epoch(sv, np.linalg.norm(sv - truth, axis=1) + 50.0)
+    r = spp_from_epoch(ok, gps_start_s=1.3e9)
+    x = spp_position(ok, gps_start_s=1.3e9)
+    assert r.valid and x is not None and np.array_equal(x, r.position_ecef_m)
+    assert np.linalg.norm(x - truth) < 1e-6
+    blunder = np.linalg.norm(sv - truth, axis=1)
+    blunder[2] += 300.0  # 300 m against sigma0 = 5 m: far beyond the chi-square threshold
+    cfg = SppConfig(exclude=False)
+    r = spp_from_epoch(epoch(sv, blunder), config=cfg, x0_ecef_m=truth)
+    assert r.status == SppStatus.RESIDUAL_TEST_FAILED and not r.valid
+    assert spp_position(epoch(sv, blunder), config=cfg, x0_ecef_m=truth) is None
+    one = np.repeat(sv[:1], 4, axis=0) + RNG.standard_normal((4, 3)) * 1e-3
+    single = epoch(one, np.linalg.norm(one - truth, axis=1))
+    assert spp_from_epoch(single, x0_ecef_m=truth).status == SppStatus.SINGULAR_GEOMETRY
+    assert spp_position(single, x0_ecef_m=truth) is None
+

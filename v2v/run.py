@@ -255,7 +255,7 @@ def _run_scenario(scenario: Scenario, out_dir: Path, *, quiet: bool, replay: boo
         build_uwb,
         child_seeds,
     )
-    from v2v.sensors.gnss.spp import spp_from_epoch
+    from v2v.sensors.gnss.spp import spp_position
     from v2v.sensors.gnss.time import utc_to_gps_s
     from v2v.sensors.uwb import concat_ranges
     from v2v.traffic.sumo import NetFiles, SumoSimulation
@@ -345,9 +345,9 @@ def _run_scenario(scenario: Scenario, out_dir: Path, *, quiet: bool, replay: boo
                 base_state: dict[str, Any] = {"x": None}
 
                 def lead_base(ep: GnssEpoch, _s=base_state) -> np.ndarray | None:
-                    res = spp_from_epoch(ep, x0_ecef_m=_s["x"], gps_start_s=gps_start)
-                    if res.valid:
-                        _s["x"] = res.position_ecef_m
+                    x = spp_position(ep, x0_ecef_m=_s["x"], gps_start_s=gps_start)  # (spp_from_epoch's, if valid)
+                    if x is not None:
+                        _s["x"] = x
                     return _s["x"]
 
                 dropped = None

@@ -614,11 +614,12 @@ class ClusterFilterBase(ABC):
         # above divergence_position_sigma_m): start again from this snapshot; a reset erases
         # only its own block, so all vehicles' sigmas are read first
         ready = [v for v in lay.vehicles if self._vehicle_ready[v]]
-        if ready:
-            i = np.fromiter(map(lay.position_starts.__getitem__, ready), dtype=np.int64, count=len(ready))
-            d = np.diagonal(self._get_P())
-            sig = np.sqrt(np.maximum(d[i] + d[i + 1] + d[i + 2], 0.0))
-            for v in compress(ready, (sig > self.config.divergence_position_sigma_m).tolist()):
+        if ready:  # (scalar floats: the same sums and square roots as array ufuncs, without their overhead)
+            d = np.diagonal(self._get_P()).tolist()
+            thr = self.config.divergence_position_sigma_m
+            starts = lay.position_starts
+            diverged = [v for v in ready if math.sqrt(max(d[starts[v]] + d[starts[v] + 1] + d[starts[v] + 2], 0.0)) > thr]
+            for v in diverged:
                 self._reset_vehicle(v)
         per_vehicle: dict[str, tuple[GnssEpoch, NDArray, NDArray, F64]] = {}
         skipped: set[str] = set()  # ready vehicles with fewer common satellites than gnss_min_satellites
@@ -664,8 +665,10 @@ class ClusterFilterBase(ABC):
             if self._window_diverged(v):
                 self._reset_vehicle(v)  # re-initialized by the next epoch's snapshot
         # pair SDs need a satellite the lead does not see (finite); none when the pairing kept
-        # every satellite of every vehicle (the usual open-sky epoch): nothing to look for
-        if self.config.use_pair_sd and not (have and np.array_equal(np.diff(moff_v), np.diff(row0))):
+        # every satellite of every vehicle (the usual open-sky epoch): nothing to look for. (A
+        # vehicle's kept satellites are a subset of its rows, so equal totals mean every
+        # vehicle kept all of its rows.)
+        if self.config.use_pair_sd and not (have and int(moff_v[-1]) == int(row0[-1])):
             infos += self._pair_sds({v: e for v, e in epochs.items() if v not in skipped} if skipped else epochs,
                                     lead_ep, geo)
         if self.config.use_doppler and lead_ep is not None:

@@ -313,6 +313,22 @@ def _chi2_thresholds(alpha: float, n: int) -> F64:
     return thr
 
 
+def _solve(sv_pos_ecef_m: ArrayLike, pseudorange_m: ArrayLike, sv_clock_m: ArrayLike, cfg: SppConfig,
+           x0_ecef_m: ArrayLike | None, t_gps_s: float) -> tuple[int, F64, NDArray[np.bool_], tuple]:
+    """``(n, a priori position, finite rows, _spp_kernel's outputs)`` of :func:`solve_spp`'s inputs."""
+    sv = np.ascontiguousarray(sv_pos_ecef_m, dtype=float).reshape(-1, 3)
+    y_all = np.asarray(pseudorange_m, dtype=float).reshape(-1) + np.asarray(sv_clock_m, dtype=float).reshape(-1)
+    n = y_all.shape[0]
+    x_prior = np.zeros(3) if x0_ecef_m is None else np.asarray(x0_ecef_m, dtype=float).reshape(3)
+    finite = np.all(np.isfinite(sv), axis=1) & np.isfinite(y_all)
+    out = _spp_kernel(
+        sv, y_all, finite, x_prior, float(cfg.sigma0_m), bool(cfg.elevation_weighting), _chi2_thresholds(cfg.alpha, n),
+        bool(cfg.exclude), int(cfg.max_iter), float(cfg.tol_m), float(t_gps_s), bool(cfg.correct_iono),
+        bool(cfg.correct_tropo), np.asarray(cfg.klobuchar_alpha, dtype=float), np.asarray(cfg.klobuchar_beta, dtype=float),
+    )
+    return n, x_prior, finite, out
+
+
 def solve_spp(
     sv_pos_ecef_m: ArrayLike,
     pseudorange_m: ArrayLike,
@@ -334,16 +350,8 @@ def solve_spp(
     t_gps_s : GPS seconds (only for the Klobuchar correction).
     """
     cfg = config or _DEFAULT_CONFIG
-    sv = np.ascontiguousarray(sv_pos_ecef_m, dtype=float).reshape(-1, 3)
-    y_all = np.asarray(pseudorange_m, dtype=float).reshape(-1) + np.asarray(sv_clock_m, dtype=float).reshape(-1)
-    n = y_all.shape[0]
-    x_prior = np.zeros(3) if x0_ecef_m is None else np.asarray(x0_ecef_m, dtype=float).reshape(3)
-    finite = np.all(np.isfinite(sv), axis=1) & np.isfinite(y_all)
-    code, it, x, used, res, chi2, thr, dops = _spp_kernel(
-        sv, y_all, finite, x_prior, float(cfg.sigma0_m), bool(cfg.elevation_weighting), _chi2_thresholds(cfg.alpha, n),
-        bool(cfg.exclude), int(cfg.max_iter), float(cfg.tol_m), float(t_gps_s), bool(cfg.correct_iono),
-        bool(cfg.correct_tropo), np.asarray(cfg.klobuchar_alpha, dtype=float), np.asarray(cfg.klobuchar_beta, dtype=float),
-    )
+    n, x_prior, finite, (code, it, x, used, res, chi2, thr, dops) = _solve(
+        sv_pos_ecef_m, pseudorange_m, sv_clock_m, cfg, x0_ecef_m, t_gps_s)
     status = _STATUS[code]
     n_used = int(used.sum())
     if code >= 3:
@@ -376,3 +384,14 @@ def spp_from_epoch(epoch: GnssEpoch, *, config: SppConfig | None = None, x0_ecef
     """:func:`solve_spp` on a :class:`GnssEpoch` (uses only measured and broadcast fields)."""
     return solve_spp(epoch.sv_pos_ecef_m, epoch.pseudorange_m, epoch.sv_clock_m, config=config,
                      x0_ecef_m=x0_ecef_m, t_gps_s=gps_start_s + epoch.t_s)
+
+
+def spp_position(epoch: GnssEpoch, *, config: SppConfig | None = None, x0_ecef_m: ArrayLike | None = None,
+                 gps_start_s: float = 0.0) -> F64 | None:
+    """``spp_from_epoch(...).position_ecef_m`` when that solution is valid, else None: the same
+    kernel call without the result record (DOPs, reason, residuals), for a caller that needs
+    only the position (the lead's base of every GNSS epoch, paper eq. 7)."""
+    cfg = config or _DEFAULT_CONFIG
+    _, _, _, (code, _, x, *_) = _solve(epoch.sv_pos_ecef_m, epoch.pseudorange_m, epoch.sv_clock_m, cfg, x0_ecef_m,
+                                      gps_start_s + epoch.t_s)
+    return x[:3].copy() if code < 2 else None  # (codes 0, 1: OK, OK_EXCLUDED; 2: the residual test failed)
