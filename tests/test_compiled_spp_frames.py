@@ -143,4 +143,3 @@ def test_spp_position_is_the_valid_solutions_position_else_none():
     single = epoch(one, np.linalg.norm(one - truth, axis=1))
     assert spp_from_epoch(single, x0_ecef_m=truth).status == SppStatus.SINGULAR_GEOMETRY
     assert spp_position(single, x0_ecef_m=truth) is None
-

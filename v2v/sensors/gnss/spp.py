@@ -136,6 +136,7 @@ _JIT: dict[str, Any] = {"cache": True, "nogil": True, "error_model": "numpy"}
 _geodetic = njit(**_JIT)(ecef_to_geodetic_point)
 _STATUS = (SppStatus.OK, SppStatus.OK_EXCLUDED, SppStatus.RESIDUAL_TEST_FAILED, SppStatus.TOO_FEW_SATELLITES,
            SppStatus.SINGULAR_GEOMETRY, SppStatus.NOT_CONVERGED)  # kernel status codes 0..5
+_VALID = (True, True, False, False, False, False)  # SppResult.valid of each kernel status code
 _COND_MAX = 1e12  # (H'WH) with a larger 2-norm condition number is "singular geometry"
 
 
@@ -372,7 +373,7 @@ def solve_spp(
     else:
         reason = ""
     return SppResult(
-        valid=status is not SppStatus.RESIDUAL_TEST_FAILED, status=status, reason=reason,
+        valid=_VALID[code], status=status, reason=reason,
         position_ecef_m=x[:3].copy(), clock_bias_m=float(x[3]), n_used=n_used, iterations=int(it),
         gdop=float(dops[0]), pdop=float(dops[1]), hdop=float(dops[2]), vdop=float(dops[3]), tdop=float(dops[4]),
         residuals_m=res, used=used, chi2=float(chi2), chi2_threshold=float(thr),
@@ -394,4 +395,4 @@ def spp_position(epoch: GnssEpoch, *, config: SppConfig | None = None, x0_ecef_m
     cfg = config or _DEFAULT_CONFIG
     _, _, _, (code, _, x, *_) = _solve(epoch.sv_pos_ecef_m, epoch.pseudorange_m, epoch.sv_clock_m, cfg, x0_ecef_m,
                                       gps_start_s + epoch.t_s)
-    return x[:3].copy() if code < 2 else None  # (codes 0, 1: OK, OK_EXCLUDED; 2: the residual test failed)
+    return x[:3].copy() if _VALID[code] else None
