@@ -146,6 +146,19 @@ def machine_reference() -> dict:
     return json.loads(p.stdout.strip().splitlines()[-1])
 
 
+def interpreter() -> dict:
+    """This interpreter: version, executable, and whether libpython is a shared library
+    (pyenv's default ``--enable-shared`` build, no PGO) or linked into the executable (a
+    distribution's build, PGO + LTO). Interpreter-bound figures, the machine reference's
+    Python loop among them, are only comparable between runs on the same kind of build."""
+    try:
+        with open("/proc/self/maps") as f:
+            shared: bool | None = any("libpython" in line for line in f)
+    except OSError:  # (not Linux)
+        shared = None
+    return {"version": sys.version.split()[0], "executable": os.path.realpath(sys.executable), "libpython_shared": shared}
+
+
 def _print_reference(tag: str, ref: dict) -> None:
     print(f"machine reference ({tag}): 10^7 Python additions {ref['python_loop_s']:.2f} s, "
           f"2000 x (156 x 156) matmul {ref['matmul_s']:.2f} s", flush=True)
@@ -185,6 +198,9 @@ def main(argv: list[str] | None = None) -> int:
     rows = []
     mc = None
     refs = {"before": machine_reference()}
+    interp = interpreter()
+    link = {True: "shared libpython", False: "libpython linked in", None: "libpython linkage unknown"}[interp["libpython_shared"]]
+    print(f"interpreter: Python {interp['version']} {interp['executable']} ({link})", flush=True)
     _print_reference("before", refs["before"])
     with tempfile.TemporaryDirectory() as tmp:
         for n in args.sizes:
@@ -232,7 +248,7 @@ def main(argv: list[str] | None = None) -> int:
               f"{mc['wall_s']:.1f} s wall ({mc['failed']} failed; mean run wall {mc['per_run_wall_mean_s']:.2f} s)")
     if args.out:
         args.out.mkdir(parents=True, exist_ok=True)
-        (args.out / "bench_run.json").write_text(json.dumps({"cases": rows, "monte_carlo": mc, "machine_reference": refs}, indent=2))
+        (args.out / "bench_run.json").write_text(json.dumps({"cases": rows, "monte_carlo": mc, "machine_reference": refs, "interpreter": interp}, indent=2))
     return 0
 
 
