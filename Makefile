@@ -14,7 +14,7 @@ STAMP := $(VENV)/.stamp-installed
 .PHONY: demo test test-all lint nets bench clean venv which-python
 
 $(STAMP): requirements.lock pyproject.toml
-	@test -x $(PY) || { echo "creating $(VENV) with $(PYTHON)"; $(PYTHON) -m venv $(VENV); }
+	@test -x $(PY) || { py="$(PYTHON)"; echo "creating $(VENV) with $$py"; "$$py" -m venv $(VENV); }
 	$(PY) -m pip install --quiet --upgrade pip
 	$(PY) -m pip install --quiet -r requirements.lock
 	$(PY) -m pip install --quiet --no-deps -e .
