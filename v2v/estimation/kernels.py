@@ -321,7 +321,9 @@ def _lazy_push(Q, kq, p, s):
 # position, clock, azimuth - integrates its *rate* - velocity, drift, azimuth rate -, every other
 # state is kept; products of such F keep that form, Phi[i, i] = A[i], Phi[i, part[i]] = B[i])
 # and the accumulated noise Qacc (block-diagonal: per vehicle 8x8, per azimuth pair 2x2, the
-# random-walk diagonal),
+# random-walk diagonal; every vehicle block gets the same F and Q, as does every azimuth pair, so
+# from the idle state all vehicle blocks of Qacc are one 8x8 matrix and all pair blocks one 2x2,
+# each kept once),
 #     P_now = Phi P Phi^T + Qacc - sum_k q_k q_k^T,
 # where the buffered update vectors q_k are carried forward by each F (O(n) each). Entries and
 # P_now h^T then cost O(nnz n + kq n); P is brought up to date (:func:`_lz_materialize`) when
@@ -333,7 +335,9 @@ def _lazy_push(Q, kq, p, s):
 @njit(**_JIT)
 def _lz_state(n, veh0, nveh, az_ia, az_ir):
     """Idle deferred-prediction state for a state of size ``n``: (A, B, part, order, meta,
-    Qv, Qaz, az_pair, az_slot, az_ia, az_ir, qdiag, pend); ``meta`` = (veh0, nveh, n_levels)."""
+    Qv, Qaz, az_pair, az_slot, az_ia, az_ir, qdiag, pend); ``meta`` = (veh0, nveh, n_levels);
+    ``Qv`` (8 x 8) the accumulated noise of every vehicle block, ``Qaz`` (2 x 2) of every
+    azimuth pair."""
     a = np.ones(n)
     b = np.zeros(n)
     part = np.full(n, -1, dtype=np.int64)
@@ -362,16 +366,13 @@ def _lz_state(n, veh0, nveh, az_ia, az_ir):
             order[m] = i
             m += 1
     meta = np.array([veh0, nveh, nl], dtype=np.int64)
-    return (a, b, part, order, meta, np.zeros((nveh, 8, 8)), np.zeros((npair, 2, 2)), az_pair, az_slot,
+    return (a, b, part, order, meta, np.zeros((8, 8)), np.zeros((2, 2)), az_pair, az_slot,
             az_ia, az_ir, np.zeros(n), np.zeros(1, dtype=np.int64))
 
 
-@njit(**_JIT)
-def _lz_entry(P, Q, kq, lz, i, j):
-    """``P_now[i, j]`` (see above); :func:`_lazy_entry` when no prediction is pending."""
-    if lz[12][0] == 0:  # (before unpacking the state: each array taken costs a reference count)
-        return _lazy_entry(P, Q, kq, i, j)
-    a, b, part, order, meta, qv, qaz, az_pair, az_slot, az_ia, az_ir, qdiag, pend = lz
+@njit(**_JIT, inline="always")
+def _lz_entry_of(P, Q, kq, a, b, part, veh0, nveh, qv, qaz, az_pair, az_slot, qdiag, i, j):
+    """``P_now[i, j]`` from the unpacked deferred-prediction state (see above)."""
     pi, pj = part[i], part[j]
     v = a[i] * a[j] * P[i, j]
     if pj >= 0:
@@ -380,13 +381,12 @@ def _lz_entry(P, Q, kq, lz, i, j):
         v += b[i] * a[j] * P[pi, j]
         if pj >= 0:
             v += b[i] * b[j] * P[pi, pj]
-    veh0, nveh = meta[0], meta[1]
     if veh0 <= i < veh0 + 8 * nveh and veh0 <= j < veh0 + 8 * nveh:
         bi, bj = (i - veh0) // 8, (j - veh0) // 8
         if bi == bj:
-            v += qv[bi, i - veh0 - 8 * bi, j - veh0 - 8 * bj]
+            v += qv[i - veh0 - 8 * bi, j - veh0 - 8 * bj]
     if az_pair[i] >= 0 and az_pair[i] == az_pair[j]:
-        v += qaz[az_pair[i], az_slot[i], az_slot[j]]
+        v += qaz[az_slot[i], az_slot[j]]
     if i == j:
         v += qdiag[i]
     for k in range(kq):
@@ -395,20 +395,33 @@ def _lz_entry(P, Q, kq, lz, i, j):
 
 
 @njit(**_JIT)
+def _lz_entry(P, Q, kq, lz, i, j):
+    """``P_now[i, j]`` (see above); :func:`_lazy_entry` when no prediction is pending."""
+    if lz[12][0] == 0:  # (before unpacking the state: each array taken costs a reference count)
+        return _lazy_entry(P, Q, kq, i, j)
+    a, b, part, order, meta, qv, qaz, az_pair, az_slot, az_ia, az_ir, qdiag, pend = lz
+    return _lz_entry_of(P, Q, kq, a, b, part, meta[0], meta[1], qv, qaz, az_pair, az_slot, qdiag, i, j)
+
+
+@njit(**_JIT)
 def _lz_rel_cov(P, Q, kq, lz, sa, sb, out):
-    """:func:`_rel_cov_lazy` on ``P_now`` (:func:`_lz_entry`)."""
+    """:func:`_rel_cov_lazy` on ``P_now``; the state unpacked once for the 9-36 entries (taking
+    its 13 arrays out of the tuple per entry cost a third of a UWB event run at N = 20)."""
     if lz[12][0] == 0:
         _rel_cov_lazy(P, Q, kq, sa, sb, out)
         return
+    a, b, part, order, meta, qv, qaz, az_pair, az_slot, az_ia, az_ir, qdiag, pend = lz
+    veh0, nveh = meta[0], meta[1]
     for i in range(3):
         for j in range(3):
             v = 0.0
             if sa >= 0:
-                v += _lz_entry(P, Q, kq, lz, sa + i, sa + j)
+                v += _lz_entry_of(P, Q, kq, a, b, part, veh0, nveh, qv, qaz, az_pair, az_slot, qdiag, sa + i, sa + j)
             if sb >= 0:
-                v += _lz_entry(P, Q, kq, lz, sb + i, sb + j)
+                v += _lz_entry_of(P, Q, kq, a, b, part, veh0, nveh, qv, qaz, az_pair, az_slot, qdiag, sb + i, sb + j)
             if sa >= 0 and sb >= 0:
-                v -= _lz_entry(P, Q, kq, lz, sa + i, sb + j) + _lz_entry(P, Q, kq, lz, sb + i, sa + j)
+                v -= (_lz_entry_of(P, Q, kq, a, b, part, veh0, nveh, qv, qaz, az_pair, az_slot, qdiag, sa + i, sb + j)
+                      + _lz_entry_of(P, Q, kq, a, b, part, veh0, nveh, qv, qaz, az_pair, az_slot, qdiag, sb + i, sa + j))
             out[i, j] = v
 
 
@@ -445,11 +458,11 @@ def _lz_update(x, P, Q, kq, lz, idx, val, nnz, nu, r_var, gate_k, test):
             bi = (i - veh0) // 8
             s0 = veh0 + 8 * bi
             for c in range(8):
-                p[s0 + c] += qv[bi, c, i - s0] * v
+                p[s0 + c] += qv[c, i - s0] * v
         if az_pair[i] >= 0:
             k = az_pair[i]
-            p[az_ia[k]] += qaz[k, 0, az_slot[i]] * v
-            p[az_ir[k]] += qaz[k, 1, az_slot[i]] * v
+            p[az_ia[k]] += qaz[0, az_slot[i]] * v
+            p[az_ir[k]] += qaz[1, az_slot[i]] * v
         p[i] += qdiag[i] * v
     s, st = _lazy_apply(x, Q, kq, p, idx, val, nnz, nu, r_var, gate_k, test)
     if st != ACCEPTED:
@@ -457,13 +470,6 @@ def _lz_update(x, P, Q, kq, lz, idx, val, nnz, nu, r_var, gate_k, test):
     if kq == Q.shape[0]:
         kq = _lz_materialize(P, Q, kq, lz)
     return s, ACCEPTED, _lazy_push(Q, kq, p, s)
-
-
-@njit(**_JIT)
-def _two_term_apply(v, a_lvl, b_lvl, a_rate, s0, lvl, rate):
-    """``v[lvl] = a_lvl v[lvl] + b_lvl v[rate]``, then ``v[rate] *= a_rate`` (one level/rate pair)."""
-    v[s0 + lvl] = a_lvl * v[s0 + lvl] + b_lvl * v[s0 + rate]
-    v[s0 + rate] = a_rate * v[s0 + rate]
 
 
 @njit(**_JIT)
@@ -489,7 +495,8 @@ def _sym_block_update(qm, f, qd, m):
 @njit(**_JIT)
 def _lz_predict(x, Q, kq, lz, dt, vpar, rw_diag, rw_psd, apar, fb, qb, fa, qa):
     """Defer one prediction over ``dt``: x <- F x (the arithmetic of :func:`predict_all`), the
-    buffered q_k <- F q_k, Phi <- F Phi, Qacc <- F Qacc F^T + Q."""
+    buffered q_k <- F q_k (row by row), Phi <- F Phi, Qacc <- F Qacc F^T + Q (the one vehicle
+    block and the one azimuth-pair block)."""
     a, b, part, order, meta, qv, qaz, az_pair, az_slot, az_ia, az_ir, qdiag, pend = lz
     veh0, nveh = meta[0], meta[1]
     if nveh:
@@ -499,17 +506,27 @@ def _lz_predict(x, Q, kq, lz, dt, vpar, rw_diag, rw_psd, apar, fb, qb, fa, qa):
             for c in range(3):
                 x[s0 + c] = x[s0 + c] + fb[c, c + 3] * x[s0 + 3 + c]  # as _predict_gm_vehicle_blocks
                 x[s0 + 3 + c] = fb[c + 3, c + 3] * x[s0 + 3 + c]
-                for r in range(kq):
-                    _two_term_apply(Q[r], 1.0, fb[c, c + 3], fb[c + 3, c + 3], s0, c, c + 3)
                 b[s0 + c] = b[s0 + c] + fb[c, c + 3] * a[s0 + 3 + c]
                 a[s0 + 3 + c] = fb[c + 3, c + 3] * a[s0 + 3 + c]
             x[s0 + 6] = x[s0 + 6] + fb[6, 7] * x[s0 + 7]
             x[s0 + 7] = fb[7, 7] * x[s0 + 7]
-            for r in range(kq):
-                _two_term_apply(Q[r], 1.0, fb[6, 7], fb[7, 7], s0, 6, 7)
             b[s0 + 6] = b[s0 + 6] + fb[6, 7] * a[s0 + 7]
             a[s0 + 7] = fb[7, 7] * a[s0 + 7]
-            _sym_block_update(qv[k], fb, qb, 8)
+        f0, f1, f2, f6 = fb[0, 3], fb[1, 4], fb[2, 5], fb[6, 7]
+        e0, e1, e2, e6 = fb[3, 3], fb[4, 4], fb[5, 5], fb[7, 7]
+        for r in range(kq):
+            q = Q[r]
+            for k in range(nveh):
+                s0 = veh0 + 8 * k
+                q[s0] = q[s0] + f0 * q[s0 + 3]
+                q[s0 + 3] = e0 * q[s0 + 3]
+                q[s0 + 1] = q[s0 + 1] + f1 * q[s0 + 4]
+                q[s0 + 4] = e1 * q[s0 + 4]
+                q[s0 + 2] = q[s0 + 2] + f2 * q[s0 + 5]
+                q[s0 + 5] = e2 * q[s0 + 5]
+                q[s0 + 6] = q[s0 + 6] + f6 * q[s0 + 7]
+                q[s0 + 7] = e6 * q[s0 + 7]
+        _sym_block_update(qv, fb, qb, 8)
     for k in range(rw_diag.shape[0]):
         qdiag[rw_diag[k]] += rw_psd[k] * dt
     if az_ia.shape[0]:
@@ -526,7 +543,7 @@ def _lz_predict(x, Q, kq, lz, dt, vpar, rw_diag, rw_psd, apar, fb, qb, fa, qa):
             b[i] = fa[0, 0] * b[i] + fa[0, 1] * a[j]
             a[i] = fa[0, 0] * a[i]
             a[j] = fa[1, 1] * a[j]
-            _sym_block_update(qaz[k], fa, qa, 2)
+        _sym_block_update(qaz, fa, qa, 2)
     pend[0] = 1
 
 
@@ -560,12 +577,12 @@ def _lz_materialize(P, Q, kq, lz):
             s0 = veh0 + 8 * k
             for i in range(8):
                 for j in range(8):
-                    P[s0 + i, s0 + j] += qv[k, i, j]
+                    P[s0 + i, s0 + j] += qv[i, j]
         for k in range(az_ia.shape[0]):
             ij = (az_ia[k], az_ir[k])
             for i in range(2):
                 for j in range(2):
-                    P[ij[i], ij[j]] += qaz[k, i, j]
+                    P[ij[i], ij[j]] += qaz[i, j]
         for i in range(n):
             P[i, i] += qdiag[i]
         a[:] = 1.0
