@@ -618,3 +618,35 @@ def test_lazy_flush_is_p_minus_qt_q_and_exactly_symmetric(n):
         assert np.array_equal(p, p.T)
         if kq == 0:
             assert np.array_equal(p, P)
+
+
+@pytest.mark.parametrize("lead_a", [False, True], ids=["two_followers", "from_the_lead"])
+def test_bearing_second_order_needs_only_the_horizontal_covariance(lead_a):
+    """A bearing's Hessian atan2(E, N) has no U row or column, so Gelb's second-order mean
+    tr(H2 P_d) / 2 and variance tr((H2 P_d)^2) / 2 depend on the horizontal 2 x 2 block of
+    P_d only: the bearing kernel's horizontal-only relative covariance gives the same two
+    numbers, to the bit, as the full 3 x 3 one (and both match P_d = J P J^T written out), on a
+    lazily updated covariance with a partly filled buffer."""
+    rng = np.random.default_rng(5)
+    n = 20
+    P = _spd(rng, n, 4.0)
+    Q = np.zeros((kernels.LAZY_RANK, n))
+    Q[:5] = rng.normal(size=(5, n)) * 0.3
+    sa, sb = (-1, 8) if lead_a else (0, 8)
+    x = rng.normal(size=n) * 30.0
+    d = np.empty(3)
+    kernels._delta(x, sa, sb, d)
+    hess = np.empty((3, 3))
+    kernels.bearing_hessian(d, hess)
+    assert not hess[2].any() and not hess[:, 2].any()
+    full, horiz = np.empty((3, 3)), np.empty((3, 3))
+    kernels._rel_cov_lazy(P, Q, 5, sa, sb, full)
+    kernels._rel_cov_lazy_h(P, Q, 5, sa, sb, horiz)
+    assert np.array_equal(horiz[:2, :2], full[:2, :2]) and not horiz[2].any() and not horiz[:, 2].any()
+    assert kernels._second_order(hess, horiz) == kernels._second_order(hess, full)
+    pl = P - Q[:5].T @ Q[:5]
+    j = np.zeros((3, n))
+    j[:, sb:sb + 3] = np.eye(3)
+    if sa >= 0:
+        j[:, sa:sa + 3] = -np.eye(3)
+    np.testing.assert_allclose(full, j @ pl @ j.T, rtol=1e-12, atol=1e-12)
