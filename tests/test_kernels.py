@@ -602,15 +602,17 @@ def test_predict_with_the_process_model_f_is_f_p_ft_plus_q():
     assert np.array_equal(P, P.T)
 
 
-@pytest.mark.parametrize("n", [20, 127, 128, 156, 316])
+@pytest.mark.parametrize("n", [12, 20, 100, 127, 128, 156, 316])
 def test_lazy_flush_is_p_minus_qt_q_and_exactly_symmetric(n):
-    """Both flush forms (one dgemm below 128 states, column panels from 128): P - Q^T Q of
-    the buffered rows (dense product: round-off of the ~kq-term sums, 1e-12 of the scale),
-    bit-for-bit symmetric; an empty buffer leaves P untouched."""
+    """Both flush forms (one block below 128 states, column panels from 128; in-place dgemm
+    with alpha = -1, beta = 1 on C-contiguous arrays, np.dot products subtracted otherwise):
+    P - Q^T Q of the buffered rows (dense product: round-off of the ~kq-term sums, 1e-12 of
+    the scale), bit-for-bit symmetric, and the two forms bit-for-bit equal (the same dgemm
+    sums, subtracted once); an empty buffer leaves P untouched."""
     rng = np.random.default_rng(n)
     P = _spd(rng, n, 1.0)
     Q = rng.normal(size=(kernels.LAZY_RANK, n)) * 0.05
-    for kq in (0, 1, 7, kernels.LAZY_RANK):
+    for kq in (0, 1, 7, 31, kernels.LAZY_RANK):
         p = P.copy()
         assert kernels.lazy_flush(p, Q, kq) == 0
         expected = P - Q[:kq].T @ Q[:kq]
@@ -618,6 +620,13 @@ def test_lazy_flush_is_p_minus_qt_q_and_exactly_symmetric(n):
         assert np.array_equal(p, p.T)
         if kq == 0:
             assert np.array_equal(p, P)
+            continue
+        p_dot = P.copy()
+        kernels._lazy_flush_dot(p_dot, Q, kq)
+        assert np.array_equal(p, p_dot)
+        p_f = np.asfortranarray(P)  # not C-contiguous: the np.dot form
+        kernels.lazy_flush(p_f, Q, kq)
+        assert np.array_equal(p_f, p_dot)
 
 
 @pytest.mark.parametrize("lead_a", [False, True], ids=["two_followers", "from_the_lead"])

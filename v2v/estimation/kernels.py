@@ -41,7 +41,8 @@ import math
 from typing import Any
 
 import numpy as np
-from numba import njit
+from numba import njit, types
+from numba.np.linalg import _BLAS
 
 from v2v.estimation.process import _B11, _B12, _SERIES_MAX_A
 from v2v.smallmat import cond2_symmetric, solve_small
@@ -181,19 +182,67 @@ def _sub_sym_block(P, g, o):
             pi[o + j] -= gi[j]
 
 
+# dgemm with alpha and beta (C <- alpha A B + beta C), the BLAS entry point behind numba's own
+# np.dot (numba.np.linalg: scipy's BLAS, resolved by name, so kernels using it stay cacheable);
+# numba's np.dot has no alpha / beta and would need a product buffer and a subtraction pass.
+_XXGEMM = _BLAS().numba_xxgemm(types.float64)
+_CH_D, _CH_N, _CH_T = ord("d"), ord("N"), ord("T")
+
+
+@njit(**_JIT)
+def _gemm_sub_block(P, Q, kq, a0, a1, b0, b1, coef):
+    """``P[a0:a1, b0:b1] -= Q[:kq, a0:a1]^T Q[:kq, b0:b1]`` in place, one dgemm (P, Q C-contiguous).
+
+    Seen column-major (Fortran BLAS) the row-major block is ``C'[r, c] = P[a0 + c, b0 + r]``
+    (ld = n) and Q is ``Q'[i, k] = Q[k, i]`` (ld = its row length), so the update is
+    ``C' <- -1 Q'[b0:b1, :kq] Q'[a0:a1, :kq]^T + 1 C'``."""
+    return _XXGEMM(_CH_D, _CH_N, _CH_T, b1 - b0, a1 - a0, kq, coef[0:].ctypes, Q[0:, b0:].ctypes, Q.shape[1],
+                   Q[0:, a0:].ctypes, Q.shape[1], coef[1:].ctypes, P[a0:, b0:].ctypes, P.shape[1])
+
+
 @njit(**_JIT)
 def lazy_flush(P, Q, kq):
-    """Apply the buffered ``P -= Q[:kq]^T Q[:kq]``, P kept exactly symmetric (each entry pair
-    gets the same value); returns 0.
+    """Apply the buffered ``P -= Q[:kq]^T Q[:kq]``, P kept exactly symmetric; returns 0.
 
-    Small states: one dgemm of the whole ``Q^T Q``, its upper triangle subtracted from both
-    halves. From ``_FLUSH_BLOCKED_MIN_N`` states: Q cut into column panels of ~48 and only the
-    upper block triangle computed (panel-by-panel dgemm, diagonal blocks as above, each
-    off-diagonal block subtracted from its block and, transposed, from the mirrored one):
-    about half the multiply-adds, 1.2x faster at 156 states and 1.5x at 316
-    (``benchmarks/bench_filter.py``: this pass is a third of the filter's time at N = 20)."""
+    The upper block triangle is updated in place, one dgemm per block (alpha = -1, beta = 1:
+    no product buffer, no subtraction pass): below ``_FLUSH_BLOCKED_MIN_N`` states one block,
+    from there column panels of ~48 (about half the multiply-adds), then the upper triangle
+    is copied into the lower one tile by tile. Each entry gets what the former form gave it
+    (``P - g`` with ``g`` one dgemm's upper triangle: the same sums, tested to the bit against
+    it at 12-316 states): 34 -> 27 us at 156 states, 132 -> 106 us at 312
+    (``benchmarks/bench_kernels.py``: this pass is about half of every batch kernel's time at
+    N = 20). A P or Q that is not C-contiguous takes the former form (:func:`_lazy_flush_dot`)."""
     if kq == 0:
         return 0
+    if not (P.flags.c_contiguous and Q.flags.c_contiguous):
+        return _lazy_flush_dot(P, Q, kq)
+    n = P.shape[0]
+    coef = np.array([-1.0, 1.0])
+    nb = 1 if n < _FLUSH_BLOCKED_MIN_N else (n + _FLUSH_PANEL // 2) // _FLUSH_PANEL
+    edges = np.empty(nb + 1, dtype=np.int64)
+    for b in range(nb):
+        edges[b] = ((b * n) // nb + 7) // 8 * 8  # panel starts on multiples of 8 (aligned rows)
+    edges[nb] = n
+    for bi in range(nb):
+        for bj in range(bi, nb):
+            if _gemm_sub_block(P, Q, kq, edges[bi], edges[bi + 1], edges[bj], edges[bj + 1], coef) != 0:
+                raise RuntimeError("lazy_flush: BLAS dgemm failed")
+    t = _TILE
+    for ti in range(0, n, t):  # lower triangle <- upper (the lower blocks were not computed)
+        for tj in range(0, ti + 1, t):
+            for i in range(ti, min(ti + t, n)):
+                for j in range(tj, min(tj + t, i)):
+                    P[i, j] = P[j, i]
+    return 0
+
+
+@njit(**_JIT)
+def _lazy_flush_dot(P, Q, kq):
+    """:func:`lazy_flush` with numba's np.dot (any memory layout): small states one dgemm of the
+    whole ``Q^T Q``, its upper triangle subtracted from both halves; from
+    ``_FLUSH_BLOCKED_MIN_N`` states Q cut into column panels of ~48 and only the upper block
+    triangle computed (panel-by-panel dgemm, diagonal blocks as above, each off-diagonal block
+    subtracted from its block and, transposed, from the mirrored one)."""
     n = P.shape[0]
     if n < _FLUSH_BLOCKED_MIN_N:
         qk = Q[:kq]
