@@ -650,7 +650,7 @@ def test_bearing_second_order_needs_only_the_horizontal_covariance(lead_a):
     assert not hess[2].any() and not hess[:, 2].any()
     full, horiz = np.empty((3, 3)), np.empty((3, 3))
     kernels._rel_cov_lazy(P, Q, 5, sa, sb, full)
-    kernels._rel_cov_lazy_h(P, Q, 5, sa, sb, horiz)
+    kernels._rel_cov_block(P, Q, 5, sa, sb, horiz, 2)
     assert np.array_equal(horiz[:2, :2], full[:2, :2]) and not horiz[2].any() and not horiz[:, 2].any()
     assert kernels._second_order(hess, horiz) == kernels._second_order(hess, full)
     pl = P - Q[:5].T @ Q[:5]

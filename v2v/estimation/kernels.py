@@ -287,28 +287,19 @@ def _lazy_entry(P, Q, kq, i, j):
 def _rel_cov_lazy(P, Q, kq, sa, sb, out):
     """Covariance of d = p_b - p_a (position slices start at sa, sb; -1 = lead at the origin)
     from the lazily updated covariance."""
-    for i in range(3):
-        for j in range(3):
-            v = 0.0
-            if sa >= 0:
-                v += _lazy_entry(P, Q, kq, sa + i, sa + j)
-            if sb >= 0:
-                v += _lazy_entry(P, Q, kq, sb + i, sb + j)
-            if sa >= 0 and sb >= 0:
-                v -= _lazy_entry(P, Q, kq, sa + i, sb + j) + _lazy_entry(P, Q, kq, sb + i, sa + j)
-            out[i, j] = v
+    _rel_cov_block(P, Q, kq, sa, sb, out, 3)
 
 
 @njit(**_JIT)
-def _rel_cov_lazy_h(P, Q, kq, sa, sb, out):
-    """:func:`_rel_cov_lazy` for a bearing: only the horizontal 2 x 2 block (the same
-    operations), the rest of ``out`` zero. A bearing's Hessian (:func:`bearing_hessian`) has
-    no U row or column, so in :func:`_second_order` the other entries only ever meet exact
-    zeros: the same mean and variance for a finite covariance, in 16 instead of 36 entries."""
+def _rel_cov_block(P, Q, kq, sa, sb, out, m):
+    """:func:`_rel_cov_lazy`'s leading ``m x m`` block, the rest of ``out`` zero. ``m = 2`` for a
+    bearing: its Hessian (:func:`bearing_hessian`) has no U row or column, so in
+    :func:`_second_order` the other entries only ever meet exact zeros (the same mean and
+    variance for a finite covariance, from 16 instead of 36 lazy entries)."""
     for i in range(3):
         for j in range(3):
             v = 0.0
-            if i < 2 and j < 2:
+            if i < m and j < m:
                 if sa >= 0:
                     v += _lazy_entry(P, Q, kq, sa + i, sa + j)
                 if sb >= 0:
@@ -832,7 +823,7 @@ def bearing_batch(x, P, sa, sb, iaz, az_ready, z, az_reported, r_var, gate_k, nl
             out_st[k] = DEGENERATE
             continue
         bearing_hessian(d, hess)
-        _rel_cov_lazy_h(P, Q, kq, sa[k], sb[k], pd)
+        _rel_cov_block(P, Q, kq, sa[k], sb[k], pd, 2)  # (a bearing's second order: horizontal only)
         h2_mean, h2_var = _second_order(hess, pd)
         if not h2_var <= lim:
             out_st[k] = DEFERRED
