@@ -190,6 +190,18 @@ _CH_D, _CH_N, _CH_T = ord("d"), ord("N"), ord("T")
 
 
 @njit(**_JIT)
+def _flush_panels(n):
+    """Edges of the flush's column panels of P: one panel below ``_FLUSH_BLOCKED_MIN_N``
+    states, else ~``_FLUSH_PANEL`` wide, each starting on a multiple of 8 (aligned rows)."""
+    nb = 1 if n < _FLUSH_BLOCKED_MIN_N else (n + _FLUSH_PANEL // 2) // _FLUSH_PANEL
+    edges = np.empty(nb + 1, dtype=np.int64)
+    for b in range(nb):
+        edges[b] = ((b * n) // nb + 7) // 8 * 8
+    edges[nb] = n
+    return edges
+
+
+@njit(**_JIT)
 def _gemm_sub_block(P, Q, kq, a0, a1, b0, b1, coef):
     """``P[a0:a1, b0:b1] -= Q[:kq, a0:a1]^T Q[:kq, b0:b1]`` in place, one dgemm (P, Q C-contiguous).
 
@@ -218,11 +230,8 @@ def lazy_flush(P, Q, kq):
         return _lazy_flush_dot(P, Q, kq)
     n = P.shape[0]
     coef = np.array([-1.0, 1.0])
-    nb = 1 if n < _FLUSH_BLOCKED_MIN_N else (n + _FLUSH_PANEL // 2) // _FLUSH_PANEL
-    edges = np.empty(nb + 1, dtype=np.int64)
-    for b in range(nb):
-        edges[b] = ((b * n) // nb + 7) // 8 * 8  # panel starts on multiples of 8 (aligned rows)
-    edges[nb] = n
+    edges = _flush_panels(n)
+    nb = edges.shape[0] - 1
     for bi in range(nb):
         for bj in range(bi, nb):
             if _gemm_sub_block(P, Q, kq, edges[bi], edges[bi + 1], edges[bj], edges[bj + 1], coef) != 0:
@@ -249,11 +258,8 @@ def _lazy_flush_dot(P, Q, kq):
         g = np.dot(qk.T, qk)
         _sub_sym_block(P, g, 0)
         return 0
-    nb = (n + _FLUSH_PANEL // 2) // _FLUSH_PANEL
-    edges = np.empty(nb + 1, dtype=np.int64)
-    for b in range(nb):
-        edges[b] = ((b * n) // nb + 7) // 8 * 8  # panel starts on multiples of 8 (aligned rows)
-    edges[nb] = n
+    edges = _flush_panels(n)
+    nb = edges.shape[0] - 1
     panels = [np.ascontiguousarray(Q[:kq, edges[b]:edges[b + 1]]) for b in range(nb)]
     for bi in range(nb):
         a0 = edges[bi]
