@@ -221,7 +221,7 @@ def lazy_flush(P, Q, kq):
     from there column panels of ~48 (about half the multiply-adds), then the upper triangle
     is copied into the lower one tile by tile. Each entry gets what the former form gave it
     (``P - g`` with ``g`` one dgemm's upper triangle: the same sums, tested to the bit against
-    it at 12-316 states): 34 -> 27 us at 156 states, 132 -> 106 us at 312
+    it at 12-316 states): 34 -> 27 us at 152 states, 132 -> 106 us at 312
     (``benchmarks/bench_kernels.py``: this pass is about half of every batch kernel's time at
     N = 20). A P or Q that is not C-contiguous takes the former form (:func:`_lazy_flush_dot`)."""
     if kq == 0:
