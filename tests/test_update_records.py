@@ -293,3 +293,27 @@ def test_an_sd_doppler_is_faulty_when_either_signal_is_an_echo():
     batch = UpdateBatch("sd_doppler", [("v1",)] * 4, np.full(4, 0.1), np.ones(4), [7, 9, 11, 12])
     assert _faulty_flags(Updates([batch]), ev, "lead") == [True, True, False, False]
     assert _faulty_flags(Updates([batch]), ev) == [False, True, False, False]  # without the lead: its echo unseen
+
+
+def test_epoch_rows_taken_as_records_make_the_epochs_frame():
+    """``SolutionRecord.take_rows`` hands the rows over as records: the chunk's frame
+    (``pandas.DataFrame`` of them) has the columns in order of first appearance and NaN where
+    a row lacks a key (a vehicle that left the cluster has no estimate columns), written out
+    here by hand; the next call has nothing new."""
+    import pandas as pd
+
+    from v2v.pipeline import SolutionRecord
+
+    rec = SolutionRecord(name="GPS")
+    rows = [{"t_s": 0.1, "vehicle": "c1.1", "initialized": True, "along_err_m": 0.25, "used_pr": 7},
+            {"t_s": 0.1, "vehicle": "c1.2", "initialized": False},  # left the cluster
+            {"t_s": 0.2, "vehicle": "c1.1", "initialized": True, "along_err_m": -0.5, "used_pr": 6, "n_fixed": 3}]
+    for r in rows:
+        rec.add_row(r)
+    got = pd.DataFrame(rec.take_rows())
+    nan = float("nan")
+    want = pd.DataFrame({"t_s": [0.1, 0.1, 0.2], "vehicle": ["c1.1", "c1.2", "c1.1"], "initialized": [True, False, True],
+                         "along_err_m": [0.25, nan, -0.5], "used_pr": [7.0, nan, 6.0], "n_fixed": [nan, nan, 3.0]})
+    pd.testing.assert_frame_equal(got, want, check_exact=True)
+    assert rec.take_rows() == []
+

@@ -608,9 +608,13 @@ class SolutionRecord:
     def add_row(self, row: dict[str, Any]) -> None:
         self._rows.append(row)
 
-    def take_rows(self) -> dict[str, list[Any]]:
-        """The epochs recorded since the last call (columns), and forget them."""
-        rows = self.rows
+    def take_rows(self) -> list[dict[str, Any]]:
+        """The epochs recorded since the last call (one dict per row), and forget them.
+
+        ``pandas.DataFrame`` of them is the frame of :attr:`rows`: columns in order of first
+        appearance, NaN where a row lacks a key. (A streamed run builds each chunk's frame
+        so: pandas' records constructor fills it in C, ~2x faster than the column lists.)"""
+        rows = self._rows
         self._rows = []
         return rows
 
