@@ -17,6 +17,7 @@ from __future__ import annotations
 from types import SimpleNamespace
 
 import numpy as np
+import pytest
 
 from v2v.estimation.filter import ClusterEkf, FilterConfig, UpdateBatch, UpdateInfo, Updates
 from v2v.estimation.layout import StateLayout
@@ -317,3 +318,53 @@ def test_epoch_rows_taken_as_records_make_the_epochs_frame():
     pd.testing.assert_frame_equal(got, want, check_exact=True)
     assert rec.take_rows() == []
 
+
+def test_update_log_columns_of_every_kind_of_piece_in_order():
+    """Each way an update reaches the log, interleaved over two flushes: column batches with a
+    PRN list, a PRN array and no PRN (-1), plain records (one rejected) between them, a UWB
+    run's records with one time tag each (``add_records``), an empty event, and faulty flags
+    all False for some events and mixed for others. Every column must list the updates in the
+    order they went in, with their own time tag, as the records say one by one."""
+    up, recs = _mixed_updates()  # batch (PRN list), two plain records, batch (no PRN)
+    nu, s = np.array([0.5, -1.5, 2.0]), np.array([1.0, 2.0, 4.0])
+    prn_arr = np.array([5, 6, 5], dtype=np.int64)
+    arr_batch = UpdateBatch("sd_doppler", [("v1",), ("v1",), ("v2",)], nu, s, prn_arr)
+    arr_recs = [UpdateInfo("sd_doppler", v, a, b, a * a / b, True, p)
+                for v, a, b, p in zip([("v1",), ("v1",), ("v2",)], nu.tolist(), s.tolist(), prn_arr.tolist(), strict=True)]
+    uwb = UpdateBatch("uwb", [("v1", "v2"), ("lead", "v1")], np.array([0.1, 0.2]), np.array([0.5, 0.5]))
+    uwb_recs = [UpdateInfo("uwb", ("v1", "v2"), 0.1, 0.5, 0.1 * 0.1 / 0.5, True, -1),
+                UpdateInfo("uwb", ("lead", "v1"), 0.2, 0.5, 0.2 * 0.2 / 0.5, True, -1)]
+    rejected = [UpdateInfo("bearing", ("v2", "v1"), 3.0, 0.25, 36.0, False, -1)]
+    mixed = Updates()
+    mixed += arr_batch
+    mixed += rejected
+    log = UpdateLog()
+    expect: list[tuple[float, UpdateInfo, bool]] = []
+    # chunk 1
+    f1 = [False] * len(recs)
+    log.add(0.1, up, f1)
+    expect += [(0.1, r, f) for r, f in zip(recs, f1, strict=True)]
+    log.add_records(np.array([0.15, 0.45]), uwb, [True, False])
+    expect += [(0.15, uwb_recs[0], True), (0.45, uwb_recs[1], False)]
+    log.add(0.2, Updates(), [])
+    log.flush()
+    # chunk 2
+    f2 = [False, True, False, False]
+    log.add(0.3, mixed, f2)
+    expect += [(0.3, r, f) for r, f in zip(arr_recs + rejected, f2, strict=True)]
+    log.add(0.4, list(recs[5:]), [False] * 5)
+    expect += [(0.4, r, False) for r in recs[5:]]
+    log.flush()
+    cols = log.columns()
+    assert cols["t_s"] == [t for t, _, _ in expect]
+    assert cols["kind"] == [r.kind for _, r, _ in expect]
+    assert cols["vehicles"] == [",".join(r.vehicles) for _, r, _ in expect]
+    assert cols["prn"] == [r.prn for _, r, _ in expect]
+    assert cols["nis"] == [r.nis for _, r, _ in expect]
+    assert cols["accepted"] == [r.accepted for _, r, _ in expect]
+    assert cols["faulty"] == [f for _, _, f in expect]
+    assert log.n == len(expect)
+    bad = UpdateLog()
+    bad.add(0.1, recs[:2], [False])  # one flag for two updates
+    with pytest.raises(ValueError, match="faulty flags"):
+        bad.flush()

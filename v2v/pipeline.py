@@ -19,7 +19,6 @@ from pathlib import Path
 from typing import Any
 
 import numpy as np
-from numpy.typing import NDArray
 
 from v2v.config.scenario import Scenario
 from v2v.config.sections import SolutionSection
@@ -459,12 +458,22 @@ class UpdateLog:
 
         pending = self._pending
         code: dict[str, int] = {}  # the chunk's kinds, numbered in order of first appearance
-        kinds: list[NDArray[np.int16]] = []
+        # Columns as they are gathered: runs (value, count) for the kinds, time tags and
+        # flags, which a batch repeats; flat lists for what plain records and a batch's PRN
+        # list give value by value; whole arrays for a batch's NIS (and PRN array). One
+        # np.repeat / np.array per column at the end, instead of small arrays per segment.
+        kind_val: list[int] = []
+        kind_rep: list[int] = []
+        t_val: list[float] = []
+        t_rep: list[int] = []
+        acc_val: list[bool] = []
+        acc_rep: list[int] = []
         vehicles: list[tuple[str, ...]] = []
-        nis: list[Any] = []
-        accepted: list[NDArray[np.bool_]] = []
-        prn: list[Any] = []
-        t_parts: list[Any] = []
+        nis_parts: list[Any] = []
+        nis_flat: list[float] = []  # plain records' NIS since the last batch
+        prn_parts: list[Any] = []
+        prn_flat: list[int] = []  # PRNs since the last PRN array
+        setcode = code.setdefault
         for t, infos, _ in pending:
             n_ev = 0
             for seg in _segments(infos):
@@ -473,39 +482,77 @@ class UpdateLog:
                     continue
                 n_ev += m
                 if isinstance(seg, UpdateBatch):
-                    kinds.append(np.full(m, code.setdefault(seg.kind, len(code)), np.int16))
+                    kind_val.append(setcode(seg.kind, len(code)))
+                    kind_rep.append(m)
                     vehicles += seg.vehicles
-                    nis.append(seg.nis)
-                    accepted.append(np.ones(m, dtype=bool))
-                    prn.append(np.full(m, -1, np.int64) if seg.prn is None else seg.prn)
+                    if nis_flat:
+                        nis_parts.append(np.array(nis_flat, dtype=float))
+                        nis_flat = []
+                    nis_parts.append(seg.nis)
+                    acc_val.append(True)
+                    acc_rep.append(m)
+                    if seg.prn is None:
+                        prn_flat += [-1] * m
+                    elif isinstance(seg.prn, np.ndarray):
+                        if prn_flat:
+                            prn_parts.append(np.array(prn_flat, dtype=np.int64))
+                            prn_flat = []
+                        prn_parts.append(seg.prn)
+                    else:
+                        prn_flat += seg.prn
                 else:
                     k, v, _nu, _s, ni, ac, pr = zip(*seg, strict=True)
-                    kinds.append(np.fromiter((code.setdefault(x, len(code)) for x in k), np.int16, m))
+                    for x in dict.fromkeys(k):  # (new kinds numbered in order of first appearance)
+                        setcode(x, len(code))
+                    kind_val += map(code.__getitem__, k)
+                    kind_rep += [1] * m
                     vehicles += v
-                    nis.append(np.array(ni, dtype=float))
-                    accepted.append(np.array(ac, dtype=bool))
-                    prn.append(pr)
+                    nis_flat += ni
+                    acc_val += ac
+                    acc_rep += [1] * m
+                    prn_flat += pr
             if n_ev:
-                t_parts.append(np.asarray(t, dtype=float) if isinstance(t, np.ndarray) else np.full(n_ev, t, dtype=float))
+                if isinstance(t, np.ndarray):
+                    t_val += t.tolist()
+                    t_rep += [1] * len(t)
+                else:
+                    t_val.append(t)
+                    t_rep.append(n_ev)
         n = len(vehicles)
         if not n:
             self._pending = []
             return
-        faulty = np.fromiter((f for _, _, fs in pending for f in fs), bool, n)
+        if nis_flat:
+            nis_parts.append(np.array(nis_flat, dtype=float))
+        if prn_flat:
+            prn_parts.append(np.array(prn_flat, dtype=np.int64))
+        # faulty flags: an event's all-False list (most events) as one run
+        f_val: list[bool] = []
+        f_rep: list[int] = []
+        for _, _, fs in pending:
+            if any(fs):
+                f_val += fs
+                f_rep += [1] * len(fs)
+            elif len(fs):
+                f_val.append(False)
+                f_rep.append(len(fs))
+        faulty = np.repeat(np.array(f_val, dtype=bool), f_rep)
+        if faulty.shape[0] != n:
+            raise ValueError(f"the update log got {faulty.shape[0]} faulty flags for {n} updates")
         names = sorted(code)  # each update stores its kind as an index into the chunk's sorted kinds
         to_sorted = np.empty(len(names), dtype=np.int16)
         to_sorted[[code[k] for k in names]] = np.arange(len(names), dtype=np.int16)
-        kind_code = to_sorted[np.concatenate(kinds)]
+        kind_code = to_sorted[np.repeat(np.array(kind_val, dtype=np.int16), kind_rep)]
         veh_index = {v: i for i, v in enumerate(dict.fromkeys(vehicles))}  # the chunk's vehicle sets, first-seen order
         cols = {
-            "t_s": np.concatenate(t_parts),
+            "t_s": np.repeat(np.array(t_val, dtype=float), t_rep),
             "kind_names": names,
             "kind_code": kind_code,
             "vehicle_names": [",".join(v) for v in veh_index],
             "vehicle_code": np.fromiter(map(veh_index.__getitem__, vehicles), np.int32, n),
-            "prn": np.concatenate([np.asarray(p, dtype=np.int64) for p in prn]),
-            "nis": np.concatenate(nis),
-            "accepted": np.concatenate(accepted),
+            "prn": np.concatenate([np.asarray(p, dtype=np.int64) for p in prn_parts]),
+            "nis": np.concatenate(nis_parts),
+            "accepted": np.repeat(np.array(acc_val, dtype=bool), acc_rep),
             "faulty": faulty,
         }
         if self._file is None:
