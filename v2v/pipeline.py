@@ -459,15 +459,15 @@ class UpdateLog:
         pending = self._pending
         code: dict[str, int] = {}  # the chunk's kinds, numbered in order of first appearance
         # Columns as they are gathered: runs (value, count) for the kinds, time tags and
-        # flags, which a batch repeats; flat lists for what plain records and a batch's PRN
-        # list give value by value; whole arrays for a batch's NIS (and PRN array). One
-        # np.repeat / np.array per column at the end, instead of small arrays per segment.
+        # flags, which a batch repeats (kinds and accepted flags share their runs: a batch is
+        # one run of each, a plain record its own); flat lists for what plain records and a
+        # batch's PRN list give value by value; whole arrays for a batch's NIS (and PRN array).
+        # One np.repeat / np.array per column at the end, instead of small arrays per segment.
         kind_val: list[int] = []
-        kind_rep: list[int] = []
+        acc_val: list[bool] = []
+        rep: list[int] = []  # the runs' lengths of kind_val and acc_val
         t_val: list[float] = []
         t_rep: list[int] = []
-        acc_val: list[bool] = []
-        acc_rep: list[int] = []
         vehicles: list[tuple[str, ...]] = []
         nis_parts: list[Any] = []
         nis_flat: list[float] = []  # plain records' NIS since the last batch
@@ -483,14 +483,13 @@ class UpdateLog:
                 n_ev += m
                 if isinstance(seg, UpdateBatch):
                     kind_val.append(setcode(seg.kind, len(code)))
-                    kind_rep.append(m)
+                    acc_val.append(True)
+                    rep.append(m)
                     vehicles += seg.vehicles
                     if nis_flat:
                         nis_parts.append(np.array(nis_flat, dtype=float))
                         nis_flat = []
                     nis_parts.append(seg.nis)
-                    acc_val.append(True)
-                    acc_rep.append(m)
                     if seg.prn is None:
                         prn_flat += [-1] * m
                     elif isinstance(seg.prn, np.ndarray):
@@ -505,11 +504,10 @@ class UpdateLog:
                     for x in dict.fromkeys(k):  # (new kinds numbered in order of first appearance)
                         setcode(x, len(code))
                     kind_val += map(code.__getitem__, k)
-                    kind_rep += [1] * m
+                    acc_val += ac
+                    rep += [1] * m
                     vehicles += v
                     nis_flat += ni
-                    acc_val += ac
-                    acc_rep += [1] * m
                     prn_flat += pr
             if n_ev:
                 if isinstance(t, np.ndarray):
@@ -542,7 +540,7 @@ class UpdateLog:
         names = sorted(code)  # each update stores its kind as an index into the chunk's sorted kinds
         to_sorted = np.empty(len(names), dtype=np.int16)
         to_sorted[[code[k] for k in names]] = np.arange(len(names), dtype=np.int16)
-        kind_code = to_sorted[np.repeat(np.array(kind_val, dtype=np.int16), kind_rep)]
+        kind_code = to_sorted[np.repeat(np.array(kind_val, dtype=np.int16), rep)]
         veh_index = {v: i for i, v in enumerate(dict.fromkeys(vehicles))}  # the chunk's vehicle sets, first-seen order
         cols = {
             "t_s": np.repeat(np.array(t_val, dtype=float), t_rep),
@@ -552,7 +550,7 @@ class UpdateLog:
             "vehicle_code": np.fromiter(map(veh_index.__getitem__, vehicles), np.int32, n),
             "prn": np.concatenate([np.asarray(p, dtype=np.int64) for p in prn_parts]),
             "nis": np.concatenate(nis_parts),
-            "accepted": np.repeat(np.array(acc_val, dtype=bool), acc_rep),
+            "accepted": np.repeat(np.array(acc_val, dtype=bool), rep),
             "faulty": faulty,
         }
         if self._file is None:
