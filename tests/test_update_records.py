@@ -89,6 +89,40 @@ def test_records_and_counters_match_with_unusable_measurements():
     assert prod.counters.get("uwb_deferred_nonlinear", 0) >= 1
 
 
+def test_a_bearing_batch_with_rejections_keeps_its_accepted_runs_as_columns():
+    """Bearings from every vehicle, with blunders (0.5 rad, ~150 sigma) in two epochs: in each
+    a batch that is accepted but for a few. Records field by field and every counter must
+    equal the reference engine's (its Python path makes one record per bearing); the
+    production engine keeps the accepted runs around each rejection as column batches, so
+    each such epoch's bearing records come as batch, rejected record(s), batch."""
+    cfg = FilterConfig()
+    ids = vehicle_ids(4)
+    scn = SimScenario(n_vehicles=4, duration_s=3.0, turn_rate_rps=0.05, bearing_vehicles=tuple(ids))
+    lay = StateLayout.build(lead="lead", vehicles=ids[1:], azimuth_vehicles=())
+    eps = simulate(scn, cfg, np.random.default_rng(5))
+    hit = [k for k, ep in enumerate(eps) if ep.bearings is not None and ep.bearings.n >= 8][10:12]
+    assert len(hit) == 2
+    for k, j in zip(hit, (3, 5), strict=True):
+        eps[k].bearings.bearing_rad[j] += 0.5
+    prod, ref = ClusterEkf(lay, cfg), ReferenceClusterEkf(lay, cfg)
+    shapes = {}
+    for k, ((_, ip), (_, ir)) in enumerate(zip(run_filter(prod, eps, scn.dt_s), run_filter(ref, eps, scn.dt_s),
+                                               strict=True)):
+        assert [(a.kind, a.vehicles, a.prn, a.accepted) for a in ip] == [(b.kind, b.vehicles, b.prn, b.accepted)
+                                                                         for b in ir]
+        for a, b in zip(ip, ir, strict=True):
+            assert abs(a.innovation - b.innovation) <= 1e-9 * np.sqrt(b.variance)
+            assert a.nis == a.innovation * a.innovation / a.variance
+        if k in hit:
+            shapes[k] = [("batch" if isinstance(p, UpdateBatch) else [r.accepted for r in p])
+                         for p in ip.parts if next(iter(p)).kind == "bearing"]
+    assert prod.counters == ref.counters
+    assert prod.counters["rejected_bearing"] >= 2
+    for k in hit:  # the blunder rejected, the bearings before and after it one batch each
+        assert shapes[k][0] == "batch" and shapes[k][-1] == "batch"
+        assert [False] in shapes[k] and shapes[k].count("batch") >= 2
+
+
 def test_pair_sds_are_the_satellites_the_lead_misses_seen_by_two_or_more():
     """SDs between two non-lead vehicles (``use_pair_sd``) written out from the epochs: for
     every satellite with no finite pseudorange at the lead but a finite one at >= 2 ready

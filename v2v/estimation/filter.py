@@ -1825,13 +1825,35 @@ class ClusterEkf(ClusterFilterBase):
                                           cfg.azimuth_sigma0_rad**2)
         for v, i in self._az_index.items():
             self._azimuth_ready[v] = bool(ready[i])
+        pairs = list(zip(a_list, b_list, strict=True))
         if not st.any():  # all accepted: no counters
-            return UpdateBatch(KIND_BEARING, list(zip(a_list, b_list, strict=True)), nu, s, None)
-        out = []
-        for k, (nuk, sk, stk) in enumerate(zip(nu.tolist(), s.tolist(), st.tolist(), strict=True)):
-            info = self._record(KIND_BEARING, (a_list[k], b_list[k]), nuk, sk, stk, -1, "bearing_deferred_nonlinear")
+            return UpdateBatch(KIND_BEARING, pairs, nu, s, None)
+        return self._record_runs(KIND_BEARING, pairs, nu, s, st, "bearing_deferred_nonlinear")
+
+    def _record_runs(self, kind: str, vehicles: Sequence[tuple[str, ...]], nu: F64, s: F64, st: NDArray[np.int64],
+                     deferred_key: str) -> Updates:
+        """The records of a kernel batch (no PRNs) in update order, as :meth:`_record` makes them
+        one by one (counters included), with each run of accepted updates between the others kept
+        as one :class:`UpdateBatch` (its columns are views of ``nu``, ``s``): a batch of a few
+        hundred bearings with a few rejected or deferred then stays columns instead of a few
+        hundred records."""
+        out = Updates()
+        recs: list[UpdateInfo] = []
+        a = 0
+        for k in np.flatnonzero(st).tolist():  # the updates that were not accepted (ACCEPTED == 0)
+            if k > a:  # the accepted run before it
+                if recs:
+                    out += recs
+                    recs = []
+                out += UpdateBatch(kind, vehicles[a:k], nu[a:k], s[a:k], None)
+            info = self._record(kind, vehicles[k], float(nu[k]), float(s[k]), int(st[k]), -1, deferred_key)
             if info is not None:
-                out.append(info)
+                recs.append(info)
+            a = k + 1
+        if recs:
+            out += recs
+        if a < len(vehicles):
+            out += UpdateBatch(kind, vehicles[a:], nu[a:], s[a:], None)
         return out
 
     def _sd_pseudoranges_all(self, geo: GnssGeometry, lead_ep: GnssEpoch,
