@@ -626,11 +626,12 @@ class _RunAccumulators:
 
     def add_sensors(self, epochs, uwb, bearings) -> None:
         self.n_epochs += len(epochs)
-        for _, eps in epochs:
-            for ep in eps.values():
-                self.n_sats += ep.n
-                self.n_sat_obs += 1
-                self.nlos += int((~ep.los).sum())
+        recv = [ep for _, eps in epochs for ep in eps.values()]  # every receiver-epoch of the chunk
+        if recv:  # (one concatenation instead of small-array reductions per receiver and epoch)
+            self.n_sat_obs += len(recv)
+            self.n_sats += sum([ep.prn.shape[0] for ep in recv])
+            los = np.concatenate([ep.los for ep in recv])
+            self.nlos += int(los.size - np.count_nonzero(los))  # echo-only signals (los False)
         if uwb is not None and uwb.n:
             self._uwb_err.append(uwb.range_m - uwb.true_range_m)
             self._uwb_los.append(np.asarray(uwb.los, dtype=bool))
