@@ -172,27 +172,80 @@ def _frames_identical(a, b) -> bool:
     return True
 
 
+def relative_difference(x, y) -> float:
+    """The largest ``|x - y|`` over the numbers of two equally shaped values (arrays, lists,
+    dicts of them; NaN equal to NaN), each array or list relative to its largest magnitude
+    (a column's scale: an error that crosses zero would make elementwise ratios meaningless);
+    inf when anything else differs (a different shape, key, type or non-numeric value): how
+    far a change that is not bit-identical moved the numbers."""
+    import numpy as np
+
+    if isinstance(x, dict) and isinstance(y, dict):
+        if x.keys() != y.keys():
+            return math.inf
+        return max((relative_difference(x[k], y[k]) for k in x), default=0.0)
+    if isinstance(x, list | tuple) and isinstance(y, list | tuple) and not (
+            all(isinstance(v, int | float) for v in x) and all(isinstance(v, int | float) for v in y)):
+        if len(x) != len(y):
+            return math.inf
+        return max((relative_difference(p, q) for p, q in zip(x, y, strict=True)), default=0.0)
+    try:
+        xa, ya = np.asarray(x), np.asarray(y)
+    except (TypeError, ValueError):
+        return 0.0 if x == y else math.inf
+    if xa.shape != ya.shape:
+        return math.inf
+    if xa.dtype.kind not in "fiub" or ya.dtype.kind not in "fiub":
+        return 0.0 if identical(xa.tolist(), ya.tolist()) else math.inf
+    xa, ya = xa.astype(float), ya.astype(float)
+    nan = np.isnan(xa)
+    if not np.array_equal(nan, np.isnan(ya)):
+        return math.inf
+    xa, ya = xa[~nan], ya[~nan]
+    diff = float(np.abs(xa - ya).max(initial=0.0))
+    if diff == 0.0:
+        return 0.0
+    finite = np.isfinite(xa) & np.isfinite(ya)
+    if not np.array_equal(xa[~finite], ya[~finite]):
+        return math.inf
+    diff = float(np.abs(xa[finite] - ya[finite]).max(initial=0.0))
+    scale = float(np.maximum(np.abs(xa[finite]), np.abs(ya[finite])).max(initial=0.0))
+    return diff / scale if diff else 0.0
+
+
+def _rel(v: float) -> str:
+    return "other values" if math.isinf(v) else f"largest relative difference {v:.1e}"
+
+
 def compare_run(a: Path, b: Path) -> list[str]:
-    """What differs between two run folders of the same scenario (empty: identical)."""
+    """What differs between two run folders of the same scenario (empty: identical); each
+    difference with its largest relative difference (:func:`relative_difference`)."""
     import pandas as pd
 
-    diffs = [f for f in ("truth.parquet", "epochs.parquet")
-             if not _frames_identical(pd.read_parquet(a / f), pd.read_parquet(b / f))]
+    diffs = []
+    for f in ("truth.parquet", "epochs.parquet"):
+        fa, fb = pd.read_parquet(a / f), pd.read_parquet(b / f)
+        if not _frames_identical(fa, fb):
+            same = list(fa.columns) == list(fb.columns) and len(fa) == len(fb)
+            worst = max((relative_difference(fa[c].to_numpy(), fb[c].to_numpy()) for c in fa.columns)
+                        if same else [math.inf])
+            diffs.append(f"{f} ({_rel(worst)})")
     sa, sb = (json.loads((d / "summary.json").read_text()) for d in (a, b))
     for s in (sa, sb):
         for k in ("wall_s", "real_time_factor", "timing_s"):
             s.pop(k, None)
     if not identical(sa, sb):
-        diffs.append("summary.json: " + ", ".join(sorted(k for k in sa.keys() | sb.keys()
-                                                         if not identical(sa.get(k), sb.get(k)))))
+        keys = sorted(k for k in sa.keys() | sb.keys() if not identical(sa.get(k), sb.get(k)))
+        diffs.append(f"summary.json: {', '.join(keys)} ({_rel(relative_difference(sa, sb))})")
     ua, ub = (pickle.loads((d / "updates.pkl").read_bytes()) for d in (a, b))
     if [n for n, _ in ua] != [n for n, _ in ub]:
         diffs.append("update logs: other solutions")
     else:
         for (name, ca), (_, cb) in zip(ua, ub, strict=True):
-            bad = [k for k in ca.keys() | cb.keys() if not identical(ca.get(k), cb.get(k))]
+            bad = sorted(k for k in ca.keys() | cb.keys() if not identical(ca.get(k), cb.get(k)))
             if bad:
-                diffs.append(f"update log of {name}: {', '.join(sorted(bad))}")
+                worst = max(relative_difference(ca.get(k), cb.get(k)) for k in bad)
+                diffs.append(f"update log of {name}: {', '.join(bad)} ({_rel(worst)})")
     return diffs
 
 
