@@ -347,6 +347,113 @@ def test_bearing_batch_deferred_rank_k_equals_sequential_updates():
     assert np.array_equal(P, P.T)
 
 
+def _bearing_case(rng, nveh=7, n_az=2):
+    """Vehicles 1..nveh (the lead, 0, at the origin: a bearing to or from it has one slice),
+    3 states each, then azimuth states of vehicles 1..n_az (initialized), a dense SPD P, and
+    every ordered pair's bearing with noise; returns (x, P, pairs, sa, sb, iaz, z, az_rep)."""
+    n = 3 * nveh + n_az
+    x = np.zeros(n)
+    for v in range(1, nveh + 1):
+        x[3 * (v - 1):3 * v] = [3.5 * (v % 3), -20.0 * (v // 3) - 12.0, 0.3 * v]
+    az_state = {v: 3 * nveh + v - 1 for v in range(1, n_az + 1)}
+    x[3 * nveh:] = rng.normal(size=n_az) * 0.02
+    P = _spd(rng, n, 0.05)
+    pairs = [(a, b) for a in range(nveh + 1) for b in range(nveh + 1) if a != b]
+    az_rep = rng.normal(size=len(pairs)) * 0.01
+
+    def pos(xx, v):
+        return np.zeros(3) if v == 0 else xx[3 * (v - 1):3 * v]
+
+    z = np.array([math.atan2(*(pos(x, b) - pos(x, a))[:2]) - (x[az_state[a]] if a in az_state else az_rep[k])
+                  + rng.normal() * 0.003 for k, (a, b) in enumerate(pairs)])
+    sa = np.array([3 * (a - 1) if a else -1 for a, _ in pairs])
+    sb = np.array([3 * (b - 1) if b else -1 for _, b in pairs])
+    iaz = np.array([az_state.get(a, -1) for a, _ in pairs])
+    return x, P, pairs, sa, sb, iaz, z, az_rep, az_state, pos
+
+
+def test_bearing_batch_subspace_equals_sequential_updates_with_azimuths_and_a_blunder():
+    """56 bearings among the lead and 7 vehicles, two of them with (initialized) azimuth
+    states, one bearing a 0.3 rad blunder: the batch (which runs in the subspace of the 14
+    horizontal positions and 2 azimuths, kernels._bearing_batch_subspace) equals textbook
+    sequential updates on the dense P (MacGougan (2009) eq. 3.16-3.18, each bearing
+    re-linearized at the current x with its second-order terms and tested with |nu| <= k sqrt(S),
+    eq. 3.26-3.27) to round-off: the same statuses, x and P to 1e-9 of each quantity's sd,
+    P exactly symmetric."""
+    rng = np.random.default_rng(11)
+    x, P, pairs, sa, sb, iaz, z, az_rep, az_state, pos = _bearing_case(rng)
+    z[17] += 0.3
+    n = len(x)
+    xe, pe = x.copy(), P.copy()
+    st_exp = []
+    for k, (a, b) in enumerate(pairs):
+        d = pos(xe, b) - pos(xe, a)
+        r2 = d[0] ** 2 + d[1] ** 2
+        j = np.array([d[1] / r2, -d[0] / r2, 0.0])
+        hrow = np.zeros(n)
+        if a:
+            hrow[3 * (a - 1):3 * a] = -j
+        if b:
+            hrow[3 * (b - 1):3 * b] = j
+        alpha = xe[az_state[a]] if a in az_state else az_rep[k]
+        if a in az_state:
+            hrow[az_state[a]] = -1.0
+        ca = np.zeros((3, n))
+        if a:
+            ca[:, 3 * (a - 1):3 * a] = -np.eye(3)
+        if b:
+            ca[:, 3 * (b - 1):3 * b] += np.eye(3)
+        pd = ca @ pe @ ca.T
+        e, nn = d[0], d[1]
+        h2 = np.array([[-2 * e * nn, e * e - nn * nn, 0], [e * e - nn * nn, 2 * e * nn, 0], [0, 0, 0]]) / r2**2
+        m = h2 @ pd
+        nu = float(wrap_angle(z[k] - (wrap_angle(math.atan2(e, nn) - alpha) + 0.5 * np.trace(m))))
+        r = R_BRG + 0.5 * np.trace(m @ m)
+        if abs(nu) > GATE * math.sqrt(float(hrow @ pe @ hrow) + r):
+            st_exp.append(kernels.REJECTED)
+            continue
+        xe, pe, _ = _textbook(xe, pe, hrow, nu, r)
+        st_exp.append(kernels.ACCEPTED)
+    ready = np.zeros(n, dtype=bool)
+    ready[list(az_state.values())] = True
+    m_ = len(pairs)
+    xs, ps = x.copy(), P.copy()  # (the subspace path itself, to show the batch took it)
+    ok, *out_sub = kernels._bearing_batch_subspace(xs, ps, sa, sb, iaz, z, az_rep, R_BRG, GATE, np.full(m_, 1e6))
+    out = kernels.bearing_batch(x, P, sa, sb, iaz, ready, z, az_rep, R_BRG, GATE, np.full(m_, 1e6), 1.0)
+    assert ok and all(np.array_equal(a, b) for a, b in zip((xs, ps, *out_sub), (x, P, *out), strict=True))
+    st = out[2]
+    assert st.tolist() == st_exp and st[17] == kernels.REJECTED and (st == kernels.ACCEPTED).sum() == m_ - 1
+    sd = np.sqrt(np.diag(pe))
+    np.testing.assert_array_less(np.abs(x - xe), 1e-9 * sd)
+    np.testing.assert_allclose(P, pe, rtol=1e-9, atol=1e-12 * np.abs(pe).max())
+    assert np.array_equal(P, P.T)
+
+
+@pytest.mark.parametrize("case", ["uninitialized_azimuth", "nonfinite_row"])
+def test_bearing_batch_falls_back_to_the_full_state_path(case):
+    """A batch that initializes an azimuth (it changes P outside the subspace), or whose
+    covariance rows of the touched states are not all finite, runs on the lazily updated full
+    covariance: bit for bit what kernels._bearing_batch_lazy gives."""
+    rng = np.random.default_rng(12)
+    x, P, pairs, sa, sb, iaz, z, az_rep, az_state, _ = _bearing_case(rng)
+    ready = np.zeros(len(x), dtype=bool)
+    if case == "uninitialized_azimuth":
+        ready[az_state[1]] = True  # vehicle 2's azimuth is initialized by its first bearing
+    else:
+        ready[list(az_state.values())] = True
+        P[0, 5] = P[5, 0] = np.inf  # (a covariance no filter should hold; the batch must not spread it)
+    m_ = len(pairs)
+    args = (sa, sb, iaz, None, z, az_rep, R_BRG, GATE, np.full(m_, 1e6), 1.0)
+    x1, p1, r1 = x.copy(), P.copy(), ready.copy()
+    out1 = kernels.bearing_batch(x1, p1, *args[:3], r1, *args[4:])
+    x2, p2, r2 = x.copy(), P.copy(), ready.copy()
+    out2 = kernels._bearing_batch_lazy(x2, p2, *args[:3], r2, *args[4:])
+    for a, b in zip((x1, p1, r1, *out1), (x2, p2, r2, *out2), strict=True):
+        assert np.array_equal(a, b, equal_nan=a.dtype.kind == "f")
+    if case == "uninitialized_azimuth":
+        assert r1[az_state[2]]
+
+
 # --------------------------------------------------------------------------- GNSS epoch sequencing
 def _sd_pr_model(rot, base, sv, rho_lead, ps=0, iclk=3):
     def f(xx, o):

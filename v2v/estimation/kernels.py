@@ -17,7 +17,9 @@ batch of one measurement type in one call, with exactly the filter's rules:
 * :func:`uwb_batch`: ranges ``(1 + s) rho + b`` (thesis eq. 3.4-3.5) with optional
   bias/scale states and their inequality constraints as pseudo-measurements (eq. 3.19-3.22).
 * :func:`bearing_batch`: ``atan2(dE, dN) - alpha`` (Petovello et al. eq. 5-6) with a known
-  (reported) or estimated azimuth, initialized at its first bearing.
+  (reported) or estimated azimuth, initialized at its first bearing; a batch that initializes
+  none runs in the subspace of the states its bearings touch (:func:`_bearing_batch_subspace`:
+  O(m^2) per bearing for m of them, then one rank-m update of P).
 * :func:`sd_doppler_batch`, :func:`sd_pseudorange_batch`: one vehicle's SD Dopplers /
   pseudoranges in the given order, with the screen's exclusions (thesis eq. 3.2-3.3); all
   vehicles of an epoch in one call: :func:`sd_pseudorange_vehicles`, :func:`sd_doppler_vehicles`.
@@ -800,6 +802,251 @@ def _uwb_ranges(x, P, Q, kq, lz, k0, k1, sa, sb, ib, isc, z, r_var, gate_k, nl_f
 @njit(**_JIT)
 def bearing_batch(x, P, sa, sb, iaz, az_ready, z, az_reported, r_var, gate_k, nl_frac, az_var0):
     """Sequential bearing updates (Petovello et al. eq. 5-6), one record per bearing.
+
+    ``sa[k]``, ``sb[k]`` position-slice starts (-1 = lead); ``iaz[k]`` the azimuth state
+    of a (-1: azimuth known, ``az_reported[k]`` used). ``az_ready`` (length n, indexed by
+    the azimuth state) marks initialized azimuths and is updated in place: an azimuth is
+    initialized at its first usable bearing to ``wrap(atan2(dE, dN) - beta)`` with variance
+    ``az_var0`` and no correlations, then that bearing is applied (zero innovation).
+    Status per bearing: DEGENERATE (horizontal distance < 1 m), DEFERRED, NONFINITE_INPUT
+    (reported azimuth), NONFINITE, REJECTED, ACCEPTED. Returns ``(nu, s, status)``; P is
+    complete on return.
+
+    A batch whose azimuths are all known or already initialized runs in the subspace of the
+    states it touches (:func:`_bearing_batch_subspace`: a few tens of states instead of the
+    whole P per bearing); one that initializes an azimuth, or whose covariance rows of those
+    states are not all finite, runs on the lazily updated covariance
+    (:func:`_bearing_batch_lazy`). Both are the same sequential updates up to round-off.
+    """
+    for k in range(z.shape[0]):
+        if iaz[k] >= 0 and not az_ready[iaz[k]]:
+            return _bearing_batch_lazy(x, P, sa, sb, iaz, az_ready, z, az_reported, r_var, gate_k, nl_frac, az_var0)
+    ok, nu, s, st = _bearing_batch_subspace(x, P, sa, sb, iaz, z, az_reported, r_var, gate_k, nl_frac)
+    if not ok:
+        return _bearing_batch_lazy(x, P, sa, sb, iaz, az_ready, z, az_reported, r_var, gate_k, nl_frac, az_var0)
+    return nu, s, st
+
+
+@njit(**_JIT)
+def _gemm_sub_block2(P, X, Y, k, a0, a1, b0, b1, coef):
+    """``P[a0:a1, b0:b1] -= X[:k, a0:a1]^T Y[:k, b0:b1]`` in place, one dgemm (as
+    :func:`_gemm_sub_block`, with two different factors; all C-contiguous)."""
+    return _XXGEMM(_CH_D, _CH_N, _CH_T, b1 - b0, a1 - a0, k, coef[0:].ctypes, Y[0:, b0:].ctypes, Y.shape[1],
+                   X[0:, a0:].ctypes, X.shape[1], coef[1:].ctypes, P[a0:, b0:].ctypes, P.shape[1])
+
+
+@njit(**_JIT)
+def _sub_xty_symmetric(P, X, Y, k):
+    """``P -= X[:k]^T Y[:k]`` for a product known to be symmetric: the upper block triangle
+    computed (one dgemm per block, the panels of :func:`lazy_flush`) and copied into the lower
+    one, so P stays exactly symmetric."""
+    n = P.shape[0]
+    coef = np.array([-1.0, 1.0])
+    edges = _flush_panels(n)
+    nb = edges.shape[0] - 1
+    for bi in range(nb):
+        for bj in range(bi, nb):
+            if _gemm_sub_block2(P, X, Y, k, edges[bi], edges[bi + 1], edges[bj], edges[bj + 1], coef) != 0:
+                raise RuntimeError("_sub_xty_symmetric: BLAS dgemm failed")
+    t = _TILE
+    for ti in range(0, n, t):
+        for tj in range(0, ti + 1, t):
+            for i in range(ti, min(ti + t, n)):
+                for j in range(tj, min(tj + t, i)):
+                    P[i, j] = P[j, i]
+    return 0
+
+
+@njit(**_JIT)
+def _bearing_batch_subspace(x, P, sa, sb, iaz, z, az_reported, r_var, gate_k, nl_frac):
+    """:func:`bearing_batch` (every azimuth known or initialized) in the subspace of the
+    states the bearings touch.
+
+    A bearing's row h has nonzeros only on S, the horizontal positions of a and b (and a's
+    azimuth state): the vertical entries of :func:`_bearing_batch_lazy`'s rows are zeros.
+    With P0 the covariance at the start and C = P0[:, S], each sequential update (MacGougan
+    (2009) eq. 3.16-3.18, in the form ``P -= q q^T``, ``q = P h^T / sqrt(S)``) has
+    ``q_k = C c_k`` for an m-vector c_k (m = |S|): by induction ``P_k = P0 - C M_k C^T``,
+    ``M_k = sum_{j<=k} c_j c_j^T``, so ``P_{k-1} h^T = C (h_S - W h_S)``, ``W = sum_{j<k}
+    c_j u_j^T``, ``u_j = q_j[S]``; and ``x_k = x0 + C w_k``, ``w_k = sum_j c_j nu_j /
+    sqrt(S_j)``. Everything a bearing needs (its innovation, S, the second-order terms, the
+    test) lives in the m x m block ``P_k[S, S]`` and ``x_k[S]``, kept up to date per bearing
+    (O(m^2) each: m = 38 states at N = 20 against the 152 of the whole state); x and P are
+    brought up to date once at the end: ``x += C w``, ``P -= C M C^T`` (upper block triangle,
+    dgemm, mirrored: exactly symmetric). The same arithmetic as the sequential updates up to
+    round-off (the rows' zero vertical entries contribute exact zeros there).
+
+    Returns ``(ok, nu, s, status)``; ``ok`` False (x, P untouched) when a covariance row of S
+    is not finite: the caller then runs :func:`_bearing_batch_lazy`, whose per-update checks
+    see the whole row.
+    """
+    n = x.shape[0]
+    mb = z.shape[0]
+    out_nu = np.zeros(mb)
+    out_s = np.zeros(mb)
+    out_st = np.zeros(mb, dtype=np.int64)
+    need = np.zeros(n, dtype=np.bool_)
+    for k in range(mb):
+        if sa[k] >= 0:
+            need[sa[k]] = True
+            need[sa[k] + 1] = True
+        if sb[k] >= 0:
+            need[sb[k]] = True
+            need[sb[k] + 1] = True
+        if iaz[k] >= 0:
+            need[iaz[k]] = True
+    slot = np.full(n, -1, dtype=np.int64)  # state index -> index in S (ascending state order)
+    idx_s = np.empty(n, dtype=np.int64)
+    m = 0
+    for i in range(n):
+        if need[i]:
+            slot[i] = m
+            idx_s[m] = i
+            m += 1
+    ct = np.empty((m, n))  # C^T: row a = P0[S[a], :] (P symmetric)
+    for a in range(m):
+        row = P[idx_s[a]]
+        for i in range(n):
+            if not math.isfinite(row[i]):
+                return False, out_nu, out_s, out_st
+            ct[a, i] = row[i]
+    pss = np.empty((m, m))  # P_k[S, S]
+    for a in range(m):
+        for b in range(m):
+            pss[a, b] = ct[a, idx_s[b]]
+    xs = np.empty(m)  # x_k[S]
+    for a in range(m):
+        xs[a] = x[idx_s[a]]
+    wt = np.zeros((m, m))  # W^T
+    g = np.empty((mb, m))  # the accepted updates' c_k, one per row
+    w = np.zeros(m)
+    p = np.empty(m)
+    c = np.empty(m)
+    hess = np.empty((3, 3))
+    pd = np.zeros((3, 3))
+    d = np.zeros(3)
+    hs = np.empty(5, dtype=np.int64)
+    hv = np.empty(5)
+    ng = 0
+    for k in range(mb):
+        lim = r_var * nl_frac[k]
+        ia = slot[sa[k]] if sa[k] >= 0 else -1
+        ib = slot[sb[k]] if sb[k] >= 0 else -1
+        for i in range(2):  # (_delta's horizontal part: the vertical one is not used)
+            d[i] = (xs[ib + i] if ib >= 0 else 0.0) - (xs[ia + i] if ia >= 0 else 0.0)
+        if math.hypot(d[0], d[1]) < 1.0:
+            out_st[k] = DEGENERATE
+            continue
+        bearing_hessian(d, hess)
+        for i in range(2):  # (_rel_cov_block with m = 2, on P_k[S, S])
+            for j in range(2):
+                v = 0.0
+                if ia >= 0:
+                    v += pss[ia + i, ia + j]
+                if ib >= 0:
+                    v += pss[ib + i, ib + j]
+                if ia >= 0 and ib >= 0:
+                    v -= pss[ia + i, ib + j] + pss[ib + i, ia + j]
+                pd[i, j] = v
+        h2_mean, h2_var = _second_order(hess, pd)
+        if not h2_var <= lim:
+            out_st[k] = DEFERRED
+            continue
+        iz = slot[iaz[k]] if iaz[k] >= 0 else -1
+        if iz >= 0:
+            alpha = xs[iz]
+        else:
+            alpha = az_reported[k]
+            if not math.isfinite(alpha):
+                out_st[k] = NONFINITE_INPUT
+                continue
+        e, n_ = d[0], d[1]
+        h = wrap_angle(math.atan2(e, n_) - alpha) + h2_mean
+        r2 = e * e + n_ * n_
+        j0, j1 = n_ / r2, -e / r2
+        nnz = 0
+        if ia >= 0:
+            hs[0], hs[1] = ia, ia + 1
+            hv[0], hv[1] = -j0, -j1
+            nnz = 2
+        if ib >= 0:
+            hs[nnz], hs[nnz + 1] = ib, ib + 1
+            hv[nnz], hv[nnz + 1] = j0, j1
+            nnz += 2
+        if iz >= 0:
+            hs[nnz] = iz
+            hv[nnz] = -1.0
+            nnz += 1
+        nu = wrap_angle(z[k] - h)
+        p[:] = 0.0  # P_k[S, S] h_S
+        for t in range(nnz):
+            row = pss[hs[t]]
+            vt = hv[t]
+            for a in range(m):
+                p[a] += row[a] * vt
+        s = 0.0
+        for t in range(nnz):
+            s += hv[t] * p[hs[t]]
+        s += r_var + h2_var
+        out_nu[k] = nu
+        out_s[k] = s
+        if not (math.isfinite(nu) and math.isfinite(s) and s > 0.0):
+            out_st[k] = NONFINITE
+            continue
+        finite = True
+        for a in range(m):
+            if not math.isfinite(p[a]):
+                finite = False
+                break
+        if not finite or abs(nu) > gate_k * math.sqrt(s):
+            out_st[k] = REJECTED
+            continue
+        gain = nu / s
+        for a in range(m):
+            xs[a] += p[a] * gain
+        rs = math.sqrt(1.0 / s)
+        for a in range(m):
+            p[a] *= rs  # u_k = q_k[S]
+        c[:] = 0.0  # c_k = (h_S - W h_S) / sqrt(S)
+        for t in range(nnz):
+            row = wt[hs[t]]
+            vt = hv[t]
+            for a in range(m):
+                c[a] -= row[a] * vt
+        for t in range(nnz):
+            c[hs[t]] += hv[t]
+        for a in range(m):
+            c[a] *= rs
+        for a in range(m):  # P_k[S, S] -= u u^T (exactly symmetric), W^T += u c^T
+            ua = p[a]
+            pa = pss[a]
+            wa = wt[a]
+            for b in range(m):
+                pa[b] -= ua * p[b]
+                wa[b] += ua * c[b]
+        for a in range(m):
+            g[ng, a] = c[a]
+        ng += 1
+        f = nu * rs
+        for a in range(m):
+            w[a] += c[a] * f
+        out_st[k] = ACCEPTED
+    if ng > 0:
+        for a in range(m):  # x += C w
+            wa = w[a]
+            row = ct[a]
+            for i in range(n):
+                x[i] += wa * row[i]
+        gk = g[:ng]
+        mm = np.dot(gk.T, gk)  # M = sum_k c_k c_k^T
+        _sub_xty_symmetric(P, np.dot(mm, ct), ct, m)  # P -= (C M) C^T: (M C^T)^T C^T
+    return True, out_nu, out_s, out_st
+
+
+@njit(**_JIT)
+def _bearing_batch_lazy(x, P, sa, sb, iaz, az_ready, z, az_reported, r_var, gate_k, nl_frac, az_var0):
+    """:func:`bearing_batch` on the lazily updated covariance (any batch: estimated azimuths
+    initialized at their first bearing included).
 
     ``sa[k]``, ``sb[k]`` position-slice starts (-1 = lead); ``iaz[k]`` the azimuth state
     of a (-1: azimuth known, ``az_reported[k]`` used). ``az_ready`` (length n, indexed by
