@@ -1037,6 +1037,8 @@ def _bearing_batch_subspace(x, P, sa, sb, iaz, z, az_reported, r_var, gate_k, nl
             row = ct[a]
             for i in range(n):
                 x[i] += wa * row[i]
+        for a in range(m):  # x[S] as the sequential updates left it (C[S, :] w = P0[S, S] w cancels digits)
+            x[idx_s[a]] = xs[a]
         gk = g[:ng]
         mm = np.dot(gk.T, gk)  # M = sum_k c_k c_k^T
         _sub_xty_symmetric(P, np.dot(mm, ct), ct, m)  # P -= (C M) C^T: (M C^T)^T C^T
