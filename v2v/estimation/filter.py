@@ -1316,9 +1316,12 @@ class ClusterFilterBase(ABC):
         use = self._usable_pairs(KIND_BEARING, bearings.a, bearings.b, bearings.bearing_rad)
         if not use:
             return Updates()
-        return Updates([self._bearing_sequence([bearings.a[k] for k in use], [bearings.b[k] for k in use],
-                                               np.asarray(bearings.bearing_rad, dtype=float)[use],
-                                               np.asarray(bearings.azimuth_reported_rad, dtype=float)[use])])
+        z = np.asarray(bearings.bearing_rad, dtype=float)
+        az = np.asarray(bearings.azimuth_reported_rad, dtype=float)
+        if len(use) == len(bearings.a):  # the usual case: every bearing usable (use is 0, 1, ..., m - 1)
+            return Updates([self._bearing_sequence(list(bearings.a), list(bearings.b), z, az)])
+        return Updates([self._bearing_sequence([bearings.a[k] for k in use], [bearings.b[k] for k in use], z[use],
+                                               az[use])])
 
     def _bearing_sequence(self, a_list: list[str], b_list: list[str], z: F64, az_reported: F64) -> Sequence[UpdateInfo]:
         """Engine hook (default: one Python scalar update per bearing): sequential updates,
