@@ -204,14 +204,37 @@ def _flush_panels(n):
 
 
 @njit(**_JIT)
-def _gemm_sub_block(P, Q, kq, a0, a1, b0, b1, coef):
-    """``P[a0:a1, b0:b1] -= Q[:kq, a0:a1]^T Q[:kq, b0:b1]`` in place, one dgemm (P, Q C-contiguous).
+def _gemm_sub_block(P, X, Y, k, a0, a1, b0, b1, coef):
+    """``P[a0:a1, b0:b1] -= X[:k, a0:a1]^T Y[:k, b0:b1]`` in place, one dgemm (all C-contiguous).
 
     Seen column-major (Fortran BLAS) the row-major block is ``C'[r, c] = P[a0 + c, b0 + r]``
-    (ld = n) and Q is ``Q'[i, k] = Q[k, i]`` (ld = its row length), so the update is
-    ``C' <- -1 Q'[b0:b1, :kq] Q'[a0:a1, :kq]^T + 1 C'``."""
-    return _XXGEMM(_CH_D, _CH_N, _CH_T, b1 - b0, a1 - a0, kq, coef[0:].ctypes, Q[0:, b0:].ctypes, Q.shape[1],
-                   Q[0:, a0:].ctypes, Q.shape[1], coef[1:].ctypes, P[a0:, b0:].ctypes, P.shape[1])
+    (ld = n) and X is ``X'[i, l] = X[l, i]`` (ld = its row length), Y alike, so the update is
+    ``C' <- -1 Y'[b0:b1, :k] X'[a0:a1, :k]^T + 1 C'``."""
+    return _XXGEMM(_CH_D, _CH_N, _CH_T, b1 - b0, a1 - a0, k, coef[0:].ctypes, Y[0:, b0:].ctypes, Y.shape[1],
+                   X[0:, a0:].ctypes, X.shape[1], coef[1:].ctypes, P[a0:, b0:].ctypes, P.shape[1])
+
+
+@njit(**_JIT)
+def _sub_xty_symmetric(P, X, Y, k):
+    """``P -= X[:k]^T Y[:k]`` for a product known to be symmetric (``X = Y`` in
+    :func:`lazy_flush`): the upper block triangle computed in place, one dgemm per block
+    (:func:`_flush_panels`), then copied into the lower one tile by tile, so P stays exactly
+    symmetric; returns 0."""
+    n = P.shape[0]
+    coef = np.array([-1.0, 1.0])
+    edges = _flush_panels(n)
+    nb = edges.shape[0] - 1
+    for bi in range(nb):
+        for bj in range(bi, nb):
+            if _gemm_sub_block(P, X, Y, k, edges[bi], edges[bi + 1], edges[bj], edges[bj + 1], coef) != 0:
+                raise RuntimeError("_sub_xty_symmetric: BLAS dgemm failed")
+    t = _TILE
+    for ti in range(0, n, t):  # lower triangle <- upper (the lower blocks were not computed)
+        for tj in range(0, ti + 1, t):
+            for i in range(ti, min(ti + t, n)):
+                for j in range(tj, min(tj + t, i)):
+                    P[i, j] = P[j, i]
+    return 0
 
 
 @njit(**_JIT)
@@ -230,21 +253,7 @@ def lazy_flush(P, Q, kq):
         return 0
     if not (P.flags.c_contiguous and Q.flags.c_contiguous):
         return _lazy_flush_dot(P, Q, kq)
-    n = P.shape[0]
-    coef = np.array([-1.0, 1.0])
-    edges = _flush_panels(n)
-    nb = edges.shape[0] - 1
-    for bi in range(nb):
-        for bj in range(bi, nb):
-            if _gemm_sub_block(P, Q, kq, edges[bi], edges[bi + 1], edges[bj], edges[bj + 1], coef) != 0:
-                raise RuntimeError("lazy_flush: BLAS dgemm failed")
-    t = _TILE
-    for ti in range(0, n, t):  # lower triangle <- upper (the lower blocks were not computed)
-        for tj in range(0, ti + 1, t):
-            for i in range(ti, min(ti + t, n)):
-                for j in range(tj, min(tj + t, i)):
-                    P[i, j] = P[j, i]
-    return 0
+    return _sub_xty_symmetric(P, Q, Q, kq)
 
 
 @njit(**_JIT)
@@ -828,33 +837,12 @@ def bearing_batch(x, P, sa, sb, iaz, az_ready, z, az_reported, r_var, gate_k, nl
 
 
 @njit(**_JIT)
-def _gemm_sub_block2(P, X, Y, k, a0, a1, b0, b1, coef):
-    """``P[a0:a1, b0:b1] -= X[:k, a0:a1]^T Y[:k, b0:b1]`` in place, one dgemm (as
-    :func:`_gemm_sub_block`, with two different factors; all C-contiguous)."""
-    return _XXGEMM(_CH_D, _CH_N, _CH_T, b1 - b0, a1 - a0, k, coef[0:].ctypes, Y[0:, b0:].ctypes, Y.shape[1],
-                   X[0:, a0:].ctypes, X.shape[1], coef[1:].ctypes, P[a0:, b0:].ctypes, P.shape[1])
-
-
-@njit(**_JIT)
-def _sub_xty_symmetric(P, X, Y, k):
-    """``P -= X[:k]^T Y[:k]`` for a product known to be symmetric: the upper block triangle
-    computed (one dgemm per block, the panels of :func:`lazy_flush`) and copied into the lower
-    one, so P stays exactly symmetric."""
-    n = P.shape[0]
-    coef = np.array([-1.0, 1.0])
-    edges = _flush_panels(n)
-    nb = edges.shape[0] - 1
-    for bi in range(nb):
-        for bj in range(bi, nb):
-            if _gemm_sub_block2(P, X, Y, k, edges[bi], edges[bi + 1], edges[bj], edges[bj + 1], coef) != 0:
-                raise RuntimeError("_sub_xty_symmetric: BLAS dgemm failed")
-    t = _TILE
-    for ti in range(0, n, t):
-        for tj in range(0, ti + 1, t):
-            for i in range(ti, min(ti + t, n)):
-                for j in range(tj, min(tj + t, i)):
-                    P[i, j] = P[j, i]
-    return 0
+def _bearing_row(e, n_, alpha, h2_mean):
+    """A bearing's prediction ``wrap(atan2(E, N) - alpha)`` plus its second-order mean, and its
+    Jacobian on (E, N) of ``d = p_b - p_a`` (Petovello et al. eq. 5-6): ``(h, N / r^2, -E / r^2)``."""
+    h = wrap_angle(math.atan2(e, n_) - alpha) + h2_mean
+    r2 = e * e + n_ * n_
+    return h, n_ / r2, -e / r2
 
 
 @njit(**_JIT)
@@ -960,10 +948,7 @@ def _bearing_batch_subspace(x, P, sa, sb, iaz, z, az_reported, r_var, gate_k, nl
             if not math.isfinite(alpha):
                 out_st[k] = NONFINITE_INPUT
                 continue
-        e, n_ = d[0], d[1]
-        h = wrap_angle(math.atan2(e, n_) - alpha) + h2_mean
-        r2 = e * e + n_ * n_
-        j0, j1 = n_ / r2, -e / r2
+        h, j0, j1 = _bearing_row(d[0], d[1], alpha, h2_mean)
         nnz = 0
         if ia >= 0:
             hs[0], hs[1] = ia, ia + 1
@@ -1095,10 +1080,7 @@ def _bearing_batch_lazy(x, P, sa, sb, iaz, az_ready, z, az_reported, r_var, gate
             if not math.isfinite(alpha):
                 out_st[k] = NONFINITE_INPUT
                 continue
-        e, n_ = d[0], d[1]
-        h = wrap_angle(math.atan2(e, n_) - alpha) + h2_mean
-        r2 = e * e + n_ * n_
-        j0, j1 = n_ / r2, -e / r2
+        h, j0, j1 = _bearing_row(d[0], d[1], alpha, h2_mean)
         nnz = 0
         if sa[k] >= 0:
             idx[0], idx[1], idx[2] = sa[k], sa[k] + 1, sa[k] + 2
