@@ -198,19 +198,12 @@ def relative_difference(x, y) -> float:
     if xa.dtype.kind not in "fiub" or ya.dtype.kind not in "fiub":
         return 0.0 if identical(xa.tolist(), ya.tolist()) else math.inf
     xa, ya = xa.astype(float), ya.astype(float)
-    nan = np.isnan(xa)
-    if not np.array_equal(nan, np.isnan(ya)):
+    finite = np.isfinite(xa)  # NaN and infinities must match where they are
+    if not (np.array_equal(finite, np.isfinite(ya)) and np.array_equal(xa[~finite], ya[~finite], equal_nan=True)):
         return math.inf
-    xa, ya = xa[~nan], ya[~nan]
+    xa, ya = xa[finite], ya[finite]
     diff = float(np.abs(xa - ya).max(initial=0.0))
-    if diff == 0.0:
-        return 0.0
-    finite = np.isfinite(xa) & np.isfinite(ya)
-    if not np.array_equal(xa[~finite], ya[~finite]):
-        return math.inf
-    diff = float(np.abs(xa[finite] - ya[finite]).max(initial=0.0))
-    scale = float(np.maximum(np.abs(xa[finite]), np.abs(ya[finite])).max(initial=0.0))
-    return diff / scale if diff else 0.0
+    return diff / float(np.maximum(np.abs(xa), np.abs(ya)).max()) if diff else 0.0
 
 
 def _rel(v: float) -> str:

@@ -911,7 +911,8 @@ def _bearing_batch_subspace(x, P, sa, sb, iaz, z, az_reported, r_var, gate_k, nl
     p = np.empty(m)
     c = np.empty(m)
     hess = np.empty((3, 3))
-    pd = np.zeros((3, 3))
+    pd = np.empty((3, 3))
+    no_q = np.empty((0, m))
     d = np.zeros(3)
     hs = np.empty(5, dtype=np.int64)
     hv = np.empty(5)
@@ -926,16 +927,7 @@ def _bearing_batch_subspace(x, P, sa, sb, iaz, z, az_reported, r_var, gate_k, nl
             out_st[k] = DEGENERATE
             continue
         bearing_hessian(d, hess)
-        for i in range(2):  # (_rel_cov_block with m = 2, on P_k[S, S])
-            for j in range(2):
-                v = 0.0
-                if ia >= 0:
-                    v += pss[ia + i, ia + j]
-                if ib >= 0:
-                    v += pss[ib + i, ib + j]
-                if ia >= 0 and ib >= 0:
-                    v -= pss[ia + i, ib + j] + pss[ib + i, ia + j]
-                pd[i, j] = v
+        _rel_cov_block(pss, no_q, 0, ia, ib, pd, 2)  # (its horizontal block, on P_k[S, S]: no buffer)
         h2_mean, h2_var = _second_order(hess, pd)
         if not h2_var <= lim:
             out_st[k] = DEFERRED
