@@ -104,6 +104,23 @@ def test_uwb_stream_equals_one_call():
         assert np.array_equal(chunked.errors_m[k], v), k
 
 
+def test_uwb_generator_copy_continues_the_stream():
+    """The UWB synthesis's generator copies (``_Clone.of``) continue the source's stream
+    exactly: after a 32-bit draw (numpy buffers the other half of its 64-bit output: the copy
+    must carry it), and advanced by ``k`` 64-bit outputs (= ``k`` uniform doubles, one output
+    each), whatever seed the copy's bit generator was made with."""
+    from v2v.sensors.uwb import _Clone
+
+    g = np.random.default_rng(11)
+    g.integers(0, 2**32, size=3, dtype=np.uint32)  # odd count: a buffered half is pending
+    copy = _Clone.of(g)
+    assert np.array_equal(copy.integers(0, 2**32, size=5, dtype=np.uint32), g.integers(0, 2**32, size=5, dtype=np.uint32))
+    assert np.array_equal(copy.standard_normal(64), g.standard_normal(64))
+    ahead = _Clone.of(g, 10)
+    g.random(10)
+    assert np.array_equal(ahead.random(32), g.random(32))
+
+
 def _streaming_heap_mb(tmp_path, duration_s: float, monkeypatch) -> float:
     """Largest traced Python heap (MB) at the end of each chunk's filtering."""
     import v2v.pipeline as pipeline
