@@ -48,7 +48,7 @@ def test_stage_timings_are_disjoint_and_the_replay_has_its_own(short_run, tmp_pa
     and the replay's work (its own stage, plus truth / links / sky) is zero without a replay."""
     _, summary = short_run
     t = summary["timing_s"]
-    assert {"traffic", "gnss", "estimation", "replay", "replay_static_truth", "metrics_io"} <= set(t)
+    assert {"traffic", "gnss", "uwb", "bearing", "occlusion", "estimation", "replay", "replay_static_truth", "metrics_io"} <= set(t)
     assert all(v >= 0.0 for v in t.values())
     assert t["measurements_io"] <= t["metrics_io"]
     assert sum(v for k, v in t.items() if k != "measurements_io") <= summary["wall_s"]
@@ -82,6 +82,35 @@ def test_estimates_logging_is_timed_as_replay_not_estimation(tmp_path, monkeypat
     assert len(calls) >= 25  # one per output epoch (10 Hz, 3 s)
     assert on["replay"] >= slept
     assert on["estimation"] - off["estimation"] < 0.5 * slept
+
+
+def test_occlusion_tests_are_their_own_stage(tmp_path, monkeypatch):
+    """The sensors' line-of-sight tests (satellite rays, UWB and bearing links) are timed into
+    the ``occlusion`` stage and out of gnss / uwb / bearing: with every building test inside
+    them slowed, the occlusion stage holds at least the time slept, and the three sensor
+    stages together grow by well under that against the same run at full speed (20 ms per
+    call: far above the run-to-run spread of those stages, ~25 ms in all here)."""
+    import time
+
+    from v2v.world.occlusion import OcclusionGeometry
+
+    sc = load_scenario(None, ["duration_s=4.0", 'solutions=[{name="GPS+UWB+Bearing", sensors=["gnss","uwb","bearing"]}]'])
+    fast = run_scenario(sc, tmp_path / "fast", quiet=True, replay=False).summary["timing_s"]
+    calls = []
+    orig = OcclusionGeometry._building_hits
+
+    def slow(self, *args, **kwargs):
+        calls.append(1)
+        time.sleep(0.02)
+        return orig(self, *args, **kwargs)
+
+    monkeypatch.setattr(OcclusionGeometry, "_building_hits", slow)
+    t = run_scenario(sc, tmp_path / "slow", quiet=True, replay=False).summary["timing_s"]
+    slept = 0.02 * len(calls)
+    assert len(calls) >= 3  # at least one per sensor: satellite rays, UWB links, bearing links
+    assert t["occlusion"] >= slept
+    sensors = ("gnss", "uwb", "bearing")
+    assert sum(t[k] for k in sensors) - sum(fast[k] for k in sensors) < 0.5 * slept
 
 
 def test_epochs_table_is_consistent_with_truth(short_run):

@@ -271,9 +271,10 @@ def _run_scenario(scenario: Scenario, out_dir: Path, *, quiet: bool, replay: boo
     # stages (wall s), disjoint. The replay's time is replay_static_truth (the calls logging truth,
     # links, sky) plus replay (world, estimates and errors, closing the file); the split is by call
     # site: buffered rows are encoded by whichever call sends them, mostly the close. The
-    # estimates' logging is not in estimation.
-    timing: dict[str, float] = dict.fromkeys(("traffic", "world", "gnss", "uwb", "bearing", "replay_static_truth",
-                                              "estimation", "replay", "metrics_io"), 0.0)
+    # estimates' logging is not in estimation. occlusion: the sensors' line-of-sight tests
+    # (satellite rays, UWB and bearing links), taken out of gnss, uwb and bearing.
+    timing: dict[str, float] = dict.fromkeys(("traffic", "world", "gnss", "uwb", "bearing", "occlusion",
+                                              "replay_static_truth", "estimation", "replay", "metrics_io"), 0.0)
     net = resolve_network(scenario)
     seeds = child_seeds(scenario.seed)
     gps_start = float(utc_to_gps_s(scenario.start_utc))
@@ -388,13 +389,12 @@ def _run_scenario(scenario: Scenario, out_dir: Path, *, quiet: bool, replay: boo
                 steps = chunk_steps
                 chunk_steps = []
                 # sensors
-                t0 = time.perf_counter()
+                t0, occ0 = time.perf_counter(), occlusion.time_s
                 epochs: list[tuple[float, dict[str, GnssEpoch]]] = []
                 for eps in gnss.feed_many(steps):  # the chunk's steps, synthesized together
                     if eps:
                         epochs.append((next(iter(eps.values())).t_s, eps))
-                timing["gnss"] += time.perf_counter() - t0
-                t0 = time.perf_counter()
+                t0, occ0 = _sensor_stage(timing, "gnss", t0, occlusion.time_s, occ0)
                 uwb = None
                 if uwb_net is not None:
                     if uwb_stream is None:
@@ -405,12 +405,11 @@ def _run_scenario(scenario: Scenario, out_dir: Path, *, quiet: bool, replay: boo
                     if final:
                         parts_u.append(uwb_stream.finish())
                     uwb = concat_ranges(parts_u)
-                timing["uwb"] += time.perf_counter() - t0
-                t0 = time.perf_counter()
+                t0, occ0 = _sensor_stage(timing, "uwb", t0, occlusion.time_s, occ0)
                 bearings = bearing_stream.push(steps) if bearing_stream is not None else None
                 if final and bearing_stream is not None:
                     bearing_stream.finish()
-                timing["bearing"] += time.perf_counter() - t0
+                _sensor_stage(timing, "bearing", t0, occlusion.time_s, occ0)
                 grid_times = [t for t, _ in epochs]  # output epochs: the GNSS grid before faults
                 if fault_log is not None:
                     assert frng is not None  # (made with the fault log)
@@ -580,6 +579,18 @@ def _run_scenario(scenario: Scenario, out_dir: Path, *, quiet: bool, replay: boo
         summary["table"] = paper_table(sol_stats) if sol_stats else ""
         atomic_write_json(tmp / "summary.json", json_safe(summary))
     return RunResult(out_dir=Path(out_dir), summary=summary)
+
+
+def _sensor_stage(timing: dict[str, float], stage: str, t0: float, occ_now: float,
+                  occ0: float) -> tuple[float, float]:
+    """Adds the wall time since ``t0`` to ``timing[stage]``, less the occlusion tests' share
+    (``occ_now - occ0`` of :attr:`OcclusionGeometry.time_s`), which goes to
+    ``timing["occlusion"]``. Returns the next stage's start ``(t0, occ0)``."""
+    t1 = time.perf_counter()
+    occ = occ_now - occ0
+    timing[stage] += t1 - t0 - occ
+    timing["occlusion"] += occ
+    return t1, occ_now
 
 
 def _count_before(times: list[float], stream: Any) -> int:

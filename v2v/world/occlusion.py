@@ -71,8 +71,11 @@ step's vehicle boxes, in one call (a whole UWB or bearing chunk).
 
 from __future__ import annotations
 
+import functools
+import time
+from collections.abc import Callable
 from dataclasses import dataclass
-from typing import Any
+from typing import Any, TypeVar
 
 import numpy as np
 import shapely
@@ -136,6 +139,23 @@ class LinkResult:
     blocker_id: NDArray[np.str_]
     hit_distance_m: FloatArray
     reflection_excess_m: FloatArray
+
+
+_M = TypeVar("_M", bound=Callable[..., Any])
+
+
+def _timed(method: _M) -> _M:
+    """Adds each call's wall time to the instance's ``time_s`` (the run's ``occlusion`` stage)."""
+
+    @functools.wraps(method)
+    def timed(self: OcclusionGeometry, *args: Any, **kwargs: Any) -> Any:
+        t0 = time.perf_counter()
+        try:
+            return method(self, *args, **kwargs)
+        finally:
+            self.time_s += time.perf_counter() - t0
+
+    return timed  # type: ignore[return-value]
 
 
 def _ccw(footprint_xy_m: ArrayLike) -> FloatArray:
@@ -439,6 +459,13 @@ class OcclusionGeometry:
         search radius around a link of horizontal length ``L`` follows from the ellipse
         of constant path ``L + E``: walls farther than ``sqrt(E (E + 2L)) / 2`` from the
         segment cannot give an excess below ``E``.
+
+    Attributes
+    ----------
+    time_s : float
+        Wall time (s) spent in :meth:`sky_many` and :meth:`links_many` (and so in
+        :meth:`sky` and :meth:`links`) since construction: a run reports it as its
+        ``occlusion`` stage.
     """
 
     #: Up to this many (antenna, wall) pairs per sky query, echo candidates are screened
@@ -453,6 +480,7 @@ class OcclusionGeometry:
     def __init__(self, world: World, *, max_reflection_excess_m: float = 100.0):
         self.world = world
         self.max_reflection_excess_m = float(max_reflection_excess_m)
+        self.time_s = 0.0
         bl = world.buildings
         self._b_ids = np.array([b.id for b in bl], dtype=str) if bl else np.array([], dtype=str)
         self._b_h = np.array([b.height_m for b in bl], dtype=float)
@@ -769,6 +797,7 @@ class OcclusionGeometry:
         az, el = np.broadcast_arrays(az, el)
         return self.sky_many(xa, np.zeros(az.size, dtype=np.int64), az, el, max_dist_m)
 
+    @_timed
     def sky_many(
         self,
         antennas_xyz_m: ArrayLike,
@@ -1083,6 +1112,7 @@ class OcclusionGeometry:
         """
         return self.links_many(p0_xyz_m, p1_xyz_m, vehicle_boxes, None, None, exclude)
 
+    @_timed
     def links_many(
         self,
         p0_xyz_m: ArrayLike,
