@@ -3,8 +3,10 @@
 Configuration (issue 7): 10 Hz GNSS, UWB between all pairs at ~3 Hz, bearings from every
 vehicle, one GPS+UWB+Bearing solution, replay off and on, on `open_highway` (lanes 0-2;
 one lane for N <= 3). Each cluster size runs in a fresh process, one after another, with
-BLAS and numba limited to one thread, so the numbers are single-core times measured in this
-one invocation. In that process the runs follow each other (libsumo: one simulation at a
+BLAS and numba limited to one thread and the process with all its threads (rerun's encoder and
+file writer among them) pinned to one CPU (``--cpu``; the first this process may use by
+default, ``--cpu -1`` leaves the placement to the OS as before 2026-12-04), so the numbers are
+single-core times measured in this one invocation. In that process the runs follow each other (libsumo: one simulation at a
 time): *cold*, the first run (replay off; it also loads the compiled kernels and pays the
 lazy imports: what a single ``v2v run`` pays), then ``--repeat`` pairs of *warm* runs (the
 steady state of a sweep worker), each pair one seed with the replay off and on, back to back
@@ -63,6 +65,9 @@ import json, sys
 from v2v.config.scenario import load_scenario
 from v2v.run import run_scenario
 n, replay_on, out, repeat = int(sys.argv[1]), sys.argv[2] == "1", sys.argv[3], int(sys.argv[5])
+if int(sys.argv[6]) >= 0:  # one core for the process and every thread it starts
+    import os
+    os.sched_setaffinity(0, {int(sys.argv[6])})
 ov = json.loads(sys.argv[4])
 sc = load_scenario(None, ov)
 t_imports = time.perf_counter() - t_start
@@ -87,15 +92,16 @@ print(json.dumps(res))
 """
 
 
-def run_case(n: int, duration: float, replay_on: bool, repeat: int, out: Path) -> dict:
+def run_case(n: int, duration: float, replay_on: bool, repeat: int, out: Path, cpu: int = -1) -> dict:
     """One fresh process: start-up (interpreter + imports), a cold run (compiled kernels
     loaded, lazy imports paid), then ``repeat`` warm runs with the replay off (and each paired
     with the same seed with the replay on, before it for odd pairs); ``warm`` / ``warm_replay``
     are the fastest, ``replay_share_paired_median`` the median of the pairs' shares,
-    ``replay_share_in_run_median`` the median of :func:`_in_run_share` over the replay-on runs."""
+    ``replay_share_in_run_median`` the median of :func:`_in_run_share` over the replay-on runs.
+    ``cpu`` >= 0: the process (all its threads) runs on that CPU only."""
     t0 = time.perf_counter()
     p = subprocess.run([sys.executable, "-c", CASE, str(n), "1" if replay_on else "0", str(out),
-                        json.dumps(overrides(n, duration)), str(repeat)],
+                        json.dumps(overrides(n, duration)), str(repeat), str(cpu)],
                        capture_output=True, text=True, check=True, env={**os.environ, **ONE_THREAD})
     r = json.loads(p.stdout.strip().splitlines()[-1])
     r["process_s"] = time.perf_counter() - t0
@@ -194,7 +200,15 @@ def main(argv: list[str] | None = None) -> int:
     ap.add_argument("--mc-duration", type=float, default=60.0)
     ap.add_argument("--mc-workers", type=int, default=2)
     ap.add_argument("--out", type=Path, default=None, help="write bench_run.json here")
+    ap.add_argument("--cpu", type=int, default=None,
+                    help="pin each case's process to this CPU (default: the first this process may use; -1: do not pin)")
     args = ap.parse_args(argv)
+    allowed = sorted(os.sched_getaffinity(0)) if hasattr(os, "sched_getaffinity") else []
+    cpu = (allowed[0] if allowed else -1) if args.cpu is None else args.cpu
+    if cpu >= 0 and allowed and cpu not in allowed:
+        print(f"bench_run: error: --cpu {cpu}: this process may run on CPUs {allowed} only -- fix: give one of them, "
+              "or -1 not to pin", file=sys.stderr)
+        return 2
     rows = []
     mc = None
     refs = {"before": machine_reference()}
@@ -202,9 +216,10 @@ def main(argv: list[str] | None = None) -> int:
     link = {True: "shared libpython", False: "libpython linked in", None: "libpython linkage unknown"}[interp["libpython_shared"]]
     print(f"interpreter: Python {interp['version']} {interp['executable']} ({link})", flush=True)
     _print_reference("before", refs["before"])
+    print(f"cases pinned to CPU {cpu} (the process and all its threads)" if cpu >= 0 else "cases not pinned", flush=True)
     with tempfile.TemporaryDirectory() as tmp:
         for n in args.sizes:
-            r = run_case(n, args.duration, not args.no_replay_on, max(1, args.repeat), Path(tmp) / f"n{n}")
+            r = run_case(n, args.duration, not args.no_replay_on, max(1, args.repeat), Path(tmp) / f"n{n}", cpu)
             r["n"] = n
             for tag, label in (("cold", "replay=off cold"), ("warm", "replay=off warm"), ("warm_replay", "replay=on  warm")):
                 if tag not in r:
@@ -248,7 +263,8 @@ def main(argv: list[str] | None = None) -> int:
               f"{mc['wall_s']:.1f} s wall ({mc['failed']} failed; mean run wall {mc['per_run_wall_mean_s']:.2f} s)")
     if args.out:
         args.out.mkdir(parents=True, exist_ok=True)
-        (args.out / "bench_run.json").write_text(json.dumps({"cases": rows, "monte_carlo": mc, "machine_reference": refs, "interpreter": interp}, indent=2))
+        (args.out / "bench_run.json").write_text(json.dumps({"cases": rows, "monte_carlo": mc, "machine_reference": refs, "interpreter": interp,
+                                                           "cpu": cpu}, indent=2))
     return 0
 
 
