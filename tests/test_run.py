@@ -58,23 +58,30 @@ def test_stage_timings_are_disjoint_and_the_replay_has_its_own(short_run, tmp_pa
     assert sum(off.values()) > 0.0
 
 
+def _slowed(monkeypatch, owner, name: str, seconds: float) -> list[int]:
+    """Patches the method ``owner.name`` to sleep ``seconds`` before each call; returns the
+    list that gets one entry per call."""
+    import time
+
+    calls: list[int] = []
+    orig = getattr(owner, name)
+
+    def slow(self, *args, **kwargs):
+        calls.append(1)
+        time.sleep(seconds)
+        return orig(self, *args, **kwargs)
+
+    monkeypatch.setattr(owner, name, slow)
+    return calls
+
+
 def test_estimates_logging_is_timed_as_replay_not_estimation(tmp_path, monkeypatch):
     """The per-epoch replay logging runs inside the filter loop but is timed into the replay
     stage: with every log_errors_many call slowed by 20 ms, the replay stage holds at least
     calls x 20 ms, and estimation grows by well under that against the same run without replay."""
-    import time
-
     from v2v.viz.rerun_logger import RerunReplayLogger
 
-    calls = []
-    orig = RerunReplayLogger.log_errors_many
-
-    def slow(self, *args, **kwargs):
-        calls.append(1)
-        time.sleep(0.02)
-        return orig(self, *args, **kwargs)
-
-    monkeypatch.setattr(RerunReplayLogger, "log_errors_many", slow)
+    calls = _slowed(monkeypatch, RerunReplayLogger, "log_errors_many", 0.02)
     sc = load_scenario(None, ["duration_s=3.0", 'solutions=[{name="GPS", sensors=["gnss"]}]'])
     on = run_scenario(sc, tmp_path / "on", quiet=True, replay=True).summary["timing_s"]
     off = run_scenario(sc, tmp_path / "off", quiet=True, replay=False).summary["timing_s"]
@@ -90,21 +97,11 @@ def test_occlusion_tests_are_their_own_stage(tmp_path, monkeypatch):
     them slowed, the occlusion stage holds at least the time slept, and the three sensor
     stages together grow by well under that against the same run at full speed (20 ms per
     call: far above the run-to-run spread of those stages, ~25 ms in all here)."""
-    import time
-
     from v2v.world.occlusion import OcclusionGeometry
 
     sc = load_scenario(None, ["duration_s=4.0", 'solutions=[{name="GPS+UWB+Bearing", sensors=["gnss","uwb","bearing"]}]'])
     fast = run_scenario(sc, tmp_path / "fast", quiet=True, replay=False).summary["timing_s"]
-    calls = []
-    orig = OcclusionGeometry._building_hits
-
-    def slow(self, *args, **kwargs):
-        calls.append(1)
-        time.sleep(0.02)
-        return orig(self, *args, **kwargs)
-
-    monkeypatch.setattr(OcclusionGeometry, "_building_hits", slow)
+    calls = _slowed(monkeypatch, OcclusionGeometry, "_building_hits", 0.02)
     t = run_scenario(sc, tmp_path / "slow", quiet=True, replay=False).summary["timing_s"]
     slept = 0.02 * len(calls)
     assert len(calls) >= 3  # at least one per sensor: satellite rays, UWB links, bearing links
