@@ -394,7 +394,7 @@ def _run_scenario(scenario: Scenario, out_dir: Path, *, quiet: bool, replay: boo
                 for eps in gnss.feed_many(steps):  # the chunk's steps, synthesized together
                     if eps:
                         epochs.append((next(iter(eps.values())).t_s, eps))
-                t0, occ0 = _sensor_stage(timing, "gnss", t0, occlusion.time_s, occ0)
+                t0, occ0 = _sensor_stage(timing, "gnss", t0, occ0, occlusion)
                 uwb = None
                 if uwb_net is not None:
                     if uwb_stream is None:
@@ -405,11 +405,11 @@ def _run_scenario(scenario: Scenario, out_dir: Path, *, quiet: bool, replay: boo
                     if final:
                         parts_u.append(uwb_stream.finish())
                     uwb = concat_ranges(parts_u)
-                t0, occ0 = _sensor_stage(timing, "uwb", t0, occlusion.time_s, occ0)
+                t0, occ0 = _sensor_stage(timing, "uwb", t0, occ0, occlusion)
                 bearings = bearing_stream.push(steps) if bearing_stream is not None else None
                 if final and bearing_stream is not None:
                     bearing_stream.finish()
-                _sensor_stage(timing, "bearing", t0, occlusion.time_s, occ0)
+                _sensor_stage(timing, "bearing", t0, occ0, occlusion)
                 grid_times = [t for t, _ in epochs]  # output epochs: the GNSS grid before faults
                 if fault_log is not None:
                     assert frng is not None  # (made with the fault log)
@@ -581,12 +581,12 @@ def _run_scenario(scenario: Scenario, out_dir: Path, *, quiet: bool, replay: boo
     return RunResult(out_dir=Path(out_dir), summary=summary)
 
 
-def _sensor_stage(timing: dict[str, float], stage: str, t0: float, occ_now: float,
-                  occ0: float) -> tuple[float, float]:
+def _sensor_stage(timing: dict[str, float], stage: str, t0: float, occ0: float,
+                  occlusion: Any) -> tuple[float, float]:
     """Adds the wall time since ``t0`` to ``timing[stage]``, less the occlusion tests' share
-    (``occ_now - occ0`` of :attr:`OcclusionGeometry.time_s`), which goes to
+    (what :attr:`OcclusionGeometry.time_s` grew by since ``occ0``), which goes to
     ``timing["occlusion"]``. Returns the next stage's start ``(t0, occ0)``."""
-    t1 = time.perf_counter()
+    t1, occ_now = time.perf_counter(), occlusion.time_s
     occ = occ_now - occ0
     timing[stage] += t1 - t0 - occ
     timing["occlusion"] += occ
