@@ -26,7 +26,7 @@ Monte Carlo (issue 7 item 3): ``--mc-runs`` runs of ``--mc-duration`` s at N = 3
 Dask ``LocalCluster`` with ``--mc-workers`` single-threaded worker processes); the wall
 time of the whole study, start-up of the cluster included, is printed.
 
-    .venv/bin/python benchmarks/bench_run.py [--sizes 3 10 20 40] [--duration 60] [--repeat 3] [--out DIR]
+    .venv/bin/python benchmarks/bench_run.py [--sizes 3 10 20 40] [--duration 60] [--repeat 3] [--cpu K] [--out DIR]
     .venv/bin/python benchmarks/bench_run.py --sizes --mc-runs 100     # Monte Carlo only
 
 Prints tables; nothing is asserted. The machine may be shared: compare CPU and wall. A
