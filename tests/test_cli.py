@@ -88,6 +88,7 @@ def test_argparse_errors_are_exit_2(tmp_path):
     assert p.returncode == 2 and "Traceback" not in p.stderr
 
 
+@pytest.mark.sumo
 def test_scenario_check_prints_resolved_toml(tmp_path, capsys):
     sc = tmp_path / "ok.toml"
     sc.write_text("name = 'mine'\n[[clusters]]\nname = 'c1'\nvehicles = 5\nlanes = [0, 1]\n")
@@ -214,3 +215,26 @@ def test_constraint_errors_say_the_bound_or_the_type(override, fix):
     with pytest.raises(UserError) as e:
         load_scenario(None, [override])
     assert e.value.field == override.split("=")[0] and e.value.fix.startswith(fix), e.value.one_line()
+
+
+@pytest.mark.sumo
+def test_scenario_check_refuses_what_a_run_refuses_before_sumo_starts(tmp_path, capsys):
+    """`scenario check` says OK only for a scenario a run gets past its set-up with: a UWB radio
+    profile that does not exist, a RINEX file that is not there, a route the net does not have
+    are one-line errors naming the field, exit 2, and nothing printed; a relative file path is
+    taken relative to the scenario file, as the run takes it. Profile names are matched
+    case-insensitively, as the run matches them."""
+    sc = tmp_path / "sc.toml"
+    sc.write_text("duration_s = 2.0\n")
+    cases = [("sensors.uwb.profile=decawave", "sensors.uwb.profile", "unknown UWB radio profile 'decawave'"),
+             ('sensors.uwb.vehicle_profiles={"c1.1"="bogus"}', 'sensors.uwb.vehicle_profiles."c1.1"', "'bogus'"),
+             ("sensors.gnss.ephemeris=sky.nav", "sensors.gnss.ephemeris", repr(str(tmp_path / "sky.nav"))),
+             ("network.route=nope", "network.route", "no route named 'nope'")]
+    for kv, field, text in cases:
+        assert main(["scenario", "check", str(sc), "--set", kv]) == 2, kv
+        captured = capsys.readouterr()
+        err = [ln for ln in captured.err.splitlines() if ln.strip()]
+        assert len(err) == 1 and err[0].startswith(f"v2v: error: {field}: ") and text in err[0] and "fix:" in err[0], err
+        assert captured.out == ""  # no resolved scenario printed for a scenario that would not run
+    assert main(["scenario", "check", str(sc), "--set", "sensors.uwb.profile=TDC"]) == 0
+    assert "OK" in capsys.readouterr().err

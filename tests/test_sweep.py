@@ -345,6 +345,19 @@ def _one_error_line(capsys, field: str) -> str:
     return err[0]
 
 
+@pytest.mark.sumo
+def test_value_a_run_would_refuse_stops_the_study_before_any_run(tmp_path, capsys):
+    """A grid value the schema accepts but every run would refuse at its set-up (an unknown UWB
+    radio profile) stops the study at load, naming the run, before a cluster starts or a
+    folder is written: not one failed run per seed."""
+    study = _write(tmp_path / "s.toml", 'seeds = [1, 2]\n[set]\nduration_s = 2.0\n'
+                   '[grid]\n"sensors.uwb.profile" = ["mssi", "decawave"]\n')
+    assert _cli(["sweep", str(study), "--out", str(tmp_path / "o"), "--quiet"]) == 2
+    line = _one_error_line(capsys, "sensors.uwb.profile")
+    assert "unknown UWB radio profile 'decawave'" in line and "run sensors.uwb.profile=decawave" in line
+    assert not (tmp_path / "o").exists()
+
+
 def test_huge_seed_count_is_refused_before_the_list_is_built(tmp_path, capsys):
     study = _write(tmp_path / "huge.toml", "seeds = {start = 1, count = 3000000000}\n")
     assert _cli(["sweep", str(study), "--out", str(tmp_path / "o"), "--quiet"]) == 2

@@ -455,6 +455,20 @@ def test_unknown_profile_is_user_error():
     assert ei.value.field == "sensors.uwb.profile" and "mssi" in str(ei.value) and "tdc" in str(ei.value)
 
 
+def test_scenario_schema_knows_exactly_the_built_in_profiles():
+    """The scenario schema refuses an unknown profile at load (v2v.config.sections), from its own
+    list of names: that list is the radios this module builds, each name accepted in any case."""
+    from v2v.config.scenario import load_scenario
+    from v2v.config.sections import UWB_PROFILE_NAMES
+
+    assert sorted(uwb.PROFILES) == sorted(UWB_PROFILE_NAMES)
+    for name in UWB_PROFILE_NAMES:
+        assert load_scenario(None, [f'sensors.uwb.profile="{name.upper()}"']).sensors.uwb.profile == name.upper()
+    with pytest.raises(UserError) as ei:
+        load_scenario(None, ['sensors.uwb.profile="dw1000"'])
+    assert ei.value.field == "sensors.uwb.profile" and "ideal, mssi, tdc" in ei.value.fix
+
+
 @pytest.mark.parametrize(
     ("field", "value"),
     [("rate_hz", -3.0), ("noise_sigma_m", -0.1), ("packet_loss_probability", 1.5), ("max_range_m", 0.0)],

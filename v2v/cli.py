@@ -169,8 +169,10 @@ def _cmd_replay(args) -> int:
 
 def _cmd_scenario(args) -> int:
     from v2v.config.scenario import load_scenario
+    from v2v.run import check_scenario
 
     sc = load_scenario(args.file, args.overrides)
+    check_scenario(sc, Path(args.file).resolve().parent)
     print(sc.to_toml())
     print(f"# {args.file}: OK", file=sys.stderr)
     return 0

@@ -15,14 +15,12 @@ import itertools
 from collections import Counter
 from collections.abc import Callable, Iterable, Sequence
 from dataclasses import dataclass, field
-from pathlib import Path
 from typing import Any
 
 import numpy as np
 
 from v2v.config.scenario import Scenario
 from v2v.config.sections import SolutionSection
-from v2v.errors import UserError
 from v2v.estimation.filter import (
     KIND_BEARING,
     KIND_SD_DOPPLER,
@@ -59,31 +57,12 @@ def child_seeds(seed: int) -> list[np.random.SeedSequence]:
 
 
 def build_ephemeris(scenario: Scenario, gps_start_s: float):
-    """The scenario's sky: the nominal constellation, or its RINEX file (a relative path is
-    relative to the working directory; :func:`v2v.run.run_scenario` makes it absolute first)."""
-    sec = scenario.sensors.gnss
-    if sec.ephemeris == "nominal":
-        from v2v.sensors.gnss.constellation import NominalConstellation
+    """The scenario's sky (:func:`v2v.sensors.gnss.source.ephemeris_source`: the nominal
+    constellation, or its RINEX file; a relative path is relative to the working directory;
+    :func:`v2v.run.run_scenario` makes it absolute first)."""
+    from v2v.sensors.gnss.source import ephemeris_source
 
-        return NominalConstellation(gps_start_s)
-    from v2v.sensors.gnss.rinex import read_rinex_nav
-
-    path = Path(sec.ephemeris)
-    if not path.is_file():
-        raise UserError(f"RINEX navigation file {str(path)!r} not found", field="sensors.gnss.ephemeris",
-                        fix='give an existing RINEX 2/3 nav file, or "nominal"')
-    eph = read_rinex_nav(path)
-    lo, hi = eph.validity()
-    end = gps_start_s + scenario.duration_s
-    if gps_start_s < lo or end > hi:
-        from v2v.sensors.gnss.time import gps_s_to_utc
-
-        raise UserError(
-            f"the run ({gps_s_to_utc(gps_start_s):%Y-%m-%d %H:%M:%S} UTC + {scenario.duration_s:.0f} s) is outside "
-            f"the ephemeris ({gps_s_to_utc(lo):%Y-%m-%d %H:%M} to {gps_s_to_utc(hi):%H:%M} UTC)",
-            field="start_utc", fix="pick a start time inside the navigation file's span",
-        )
-    return eph
+    return ephemeris_source(scenario.sensors.gnss.ephemeris, gps_start_s, scenario.duration_s)
 
 
 def build_gnss(scenario: Scenario, gps_start_s: float, seed: np.random.SeedSequence, occlusion, georef):

@@ -201,6 +201,26 @@ def absolute_paths(scenario: Scenario, base_dir: Path | None) -> Scenario:
     return scenario.model_copy(update={"network": new_net, "sensors": sensors})
 
 
+def check_scenario(scenario: Scenario, base_dir: Path | None = None) -> None:
+    """Check, without running, what a run of ``scenario`` checks before SUMO starts beyond the
+    scenario schema (which :func:`v2v.config.scenario.load_scenario` applies): the network,
+    built from its sources if it is not yet (its route, its polygon files and their buildings),
+    and the sky (a RINEX file: present, readable, spanning the run). Raises the
+    :class:`UserError` the run would; ``base_dir`` as for :func:`run_scenario`. ``v2v scenario
+    check`` and ``v2v sweep`` call it, so a study's bad value stops the study before any run
+    instead of failing each one. Only the light modules are imported (no filter, no compiled
+    kernels: a sweep's own process stays small)."""
+    from v2v.sensors.gnss.source import ephemeris_source
+    from v2v.sensors.gnss.time import utc_to_gps_s
+    from v2v.world.buildings import load_polygons
+
+    scenario = absolute_paths(scenario, base_dir)
+    net = resolve_network(scenario)
+    if net.poly_paths:
+        load_polygons(list(net.poly_paths))
+    ephemeris_source(scenario.sensors.gnss.ephemeris, float(utc_to_gps_s(scenario.start_utc)), scenario.duration_s)
+
+
 def run_scenario(
     scenario: Scenario,
     out_dir: Path,

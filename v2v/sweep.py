@@ -17,7 +17,8 @@ A *study file* is TOML, data only::
 Keys in ``[grid]`` and ``[set]`` are the dotted ``--set`` paths of
 :func:`v2v.config.scenario.apply_override` (quoted, or written as nested TOML tables);
 values replace, as ``--set`` does. Every combination is validated with
-:func:`~v2v.config.scenario.load_scenario` before any run starts.
+:func:`~v2v.config.scenario.load_scenario`, and each distinct one's set-up (network, sky)
+with :func:`v2v.run.check_scenario`, before any run starts.
 
 Execution: each run is one :func:`v2v.run.run_scenario` call in a Dask worker *process*
 (libsumo allows one simulation per process and is not thread-safe; a process-wide lock
@@ -200,9 +201,12 @@ def _read_seeds(raw: Any, where: str) -> tuple[int, ...]:
 
 
 def load_study(path: str | Path) -> Study:
-    """Read a study file and validate every run's scenario (raises :class:`UserError`)."""
+    """Read a study file and validate every run's scenario, including what a run checks
+    before SUMO starts (:func:`v2v.run.check_scenario`: network, sky); raises
+    :class:`UserError`."""
 
     from v2v.config.scenario import load_scenario, read_toml
+    from v2v.run import check_scenario
 
     p = Path(path)
     data = read_toml(p, field="STUDY", what="study file")
@@ -251,12 +255,18 @@ def load_study(path: str | Path) -> Study:
     fixed_ov = [f"{k}={toml_inline(v)}" for k, v in fixed.items()]
     runs: list[RunSpec] = []
     seen: dict[str, str] = {}
+    checked: set[str] = set()
     for combo in itertools.product(*(range(len(grid[k])) for k in keys)):
         labels = {k: labels_by_key[k][i] for k, i in zip(keys, combo, strict=True)}
         grid_ov = [f"{k}={toml_inline(grid[k][i])}" for k, i in zip(keys, combo, strict=True)]
         desc = ", ".join(f"{k}={v}" for k, v in labels.items()) or "the base scenario"
         try:
             first = load_scenario(base, [*fixed_ov, *grid_ov, f"seed={seeds[0]}"])
+            # what the run checks before SUMO starts (network, sky), once per distinct input
+            key = first.model_dump_json(include={"network", "sensors", "start_utc", "duration_s"})
+            if key not in checked:
+                check_scenario(first, study.base_dir)
+                checked.add(key)
         except UserError as exc:
             raise UserError(f"{exc.message} (study {p.name}, run {desc})", field=exc.field, fix=exc.fix) from None
         readable = "_".join(_slug(v) for v in labels.values()) or "run"

@@ -40,11 +40,38 @@ class GnssSection(_Model):
     errors: GnssErrorsSection = GnssErrorsSection()
 
 
+# the built-in UWB radio profiles (v2v.sensors.uwb.PROFILES; names matched case-insensitively)
+UWB_PROFILE_NAMES = ("ideal", "mssi", "tdc")
+
+
+def _unknown_profile(name: str) -> str | None:
+    if str(name).lower() in UWB_PROFILE_NAMES:
+        return None
+    return f"unknown UWB radio profile {name!r} -- fix: use one of {', '.join(UWB_PROFILE_NAMES)}"
+
+
 class UwbSection(_Model):
     enabled: bool = True
     profile: str = "mssi"  # mssi | tdc | ideal
     vehicle_profiles: dict[str, str] = Field(default_factory=dict)  # per vehicle id
     pairs: Literal["all"] | list[tuple[str, str]] = "all"
+
+    @field_validator("profile")
+    @classmethod
+    def _known_profile(cls, v: str) -> str:
+        bad = _unknown_profile(v)
+        if bad:
+            raise ValueError(bad)
+        return v
+
+    @field_validator("vehicle_profiles")
+    @classmethod
+    def _known_vehicle_profiles(cls, v: dict[str, str]) -> dict[str, str]:
+        for vid, name in v.items():
+            bad = _unknown_profile(name)
+            if bad:
+                raise ValueError(f'@"{vid}": {bad}')
+        return v
 
 
 class BearingSection(_Model):
