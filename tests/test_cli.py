@@ -238,3 +238,19 @@ def test_scenario_check_refuses_what_a_run_refuses_before_sumo_starts(tmp_path, 
         assert captured.out == ""  # no resolved scenario printed for a scenario that would not run
     assert main(["scenario", "check", str(sc), "--set", "sensors.uwb.profile=TDC"]) == 0
     assert "OK" in capsys.readouterr().err
+
+
+def test_study_file_given_to_run_says_to_use_sweep(tmp_path, capsys):
+    study = Path(__file__).resolve().parents[1] / "scenarios" / "sweeps" / "example_sweep.toml"
+    assert main(["run", str(study), "--no-replay", "--out", str(tmp_path / "r")]) == 2
+    err = [ln for ln in capsys.readouterr().err.splitlines() if ln.strip()]
+    assert len(err) == 1 and err[0].startswith("v2v: error: base: unknown key") and "`v2v sweep FILE`" in err[0], err
+    assert not (tmp_path / "r").exists()
+
+
+@pytest.mark.parametrize(("extra", "field"), [(["--mask-deg", "95"], "--mask-deg"), (["--mask-deg", "nan"], "--mask-deg"),
+                                              (["--mask-deg", "-1"], "--mask-deg"), (["--height", "inf"], "--height")])
+def test_sky_refuses_a_mask_or_height_that_is_not_physical(extra, field, capsys):
+    assert main(["sky", "--lat", "51", "--lon", "0", "--time", "2021-04-28T19:00:00Z", *extra]) == 2
+    err = [ln for ln in capsys.readouterr().err.splitlines() if ln.strip()]
+    assert len(err) == 1 and err[0].startswith(f"v2v: error: {field}: ") and "fix:" in err[0], err

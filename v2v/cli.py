@@ -8,6 +8,7 @@ exit 1, so they can be reported.
 from __future__ import annotations
 
 import argparse
+import math
 import sys
 from pathlib import Path
 
@@ -206,6 +207,11 @@ def _cmd_sky(args) -> int:
             when = datetime.fromisoformat(args.time.replace("Z", "+00:00"))
         except ValueError:
             raise UserError(f"cannot read time {args.time!r}", field="--time", fix="ISO 8601, e.g. 2021-04-28T19:00:00Z") from None
+    if not 0.0 <= args.mask_deg < 90.0:  # (also NaN)
+        raise UserError(f"elevation mask {args.mask_deg} deg is not in [0, 90)", field="--mask-deg",
+                        fix="give degrees above the horizon, e.g. --mask-deg 10")
+    if not math.isfinite(h):
+        raise UserError(f"height {h} is not a finite number", field="--height", fix="give metres above the ellipsoid")
     t_gps = utc_to_gps_s(when)
     eph = _ephemeris(args.rinex, t_gps)
     df = sky_view(np.radians(lat_deg), np.radians(lon_deg), h, t_gps, eph, np.radians(args.mask_deg))

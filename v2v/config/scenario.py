@@ -256,6 +256,9 @@ def apply_override(data: dict[str, Any], assignment: str) -> dict[str, Any]:
     return root
 
 
+_STUDY_ONLY_KEYS = frozenset({"base", "seeds", "grid", "set"})  # top-level keys of a sweep study (v2v.sweep)
+
+
 def _format_validation_error(err: ValidationError, data: dict[str, Any], source: str) -> UserError:
     e = err.errors()[0]
     loc = ".".join(str(p) for p in e["loc"])
@@ -264,6 +267,9 @@ def _format_validation_error(err: ValidationError, data: dict[str, Any], source:
         allowed = _allowed_keys_at(e["loc"][:-1])
         close = difflib.get_close_matches(name, allowed, n=1)
         fix = f"did you mean {close[0]!r}?" if close else f"allowed keys here: {', '.join(sorted(allowed))}"
+        if len(e["loc"]) == 1 and name in _STUDY_ONLY_KEYS:  # (a study file given to `v2v run`)
+            study = "a sweep study file runs with `v2v sweep FILE`"
+            fix = f"{fix} ({study})" if close else study
         return UserError(f"unknown key in {source}", field=loc, fix=fix)
     if e["type"] == "missing":
         return UserError(f"required key missing in {source}", field=loc, fix="add it (see the README scenario reference)")
