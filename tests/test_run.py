@@ -366,3 +366,37 @@ def test_height_aiding_sigma_none_means_off():
     sol = SolutionSection(name="x", sensors=["gnss"], height_aiding_sigma_m=None)
     assert sol.height_aiding is False and sol.height_aiding_sigma is None
     assert SolutionSection(name="x", sensors=["gnss"]).height_aiding_sigma == 1.0
+
+
+@pytest.mark.parametrize(("sets", "cause"), [
+    # no GPS satellite within 1 deg of the zenith over Calgary at the default start: nothing to start a filter from
+    (["sensors.gnss.elevation_mask_deg=89"], "tracked 0.0 satellites on average (sensors.gnss.elevation_mask_deg = 89"),
+    # the followers' epochs never reach the lead
+    (["exchange.loss_probability=1.0"], "every V2V message was lost (exchange.loss_probability = 1)"),
+])
+def test_a_run_that_estimates_nothing_says_why(tmp_path, sets, cause):
+    """A run whose filters never start (every availability 0) ends with a note naming the
+    cause, in summary.json and on the console, instead of a silent table of NaN; a run that
+    estimates has no such note (the default scenario: ``short_run``)."""
+    sc = load_scenario(None, ["duration_s=3.0", 'solutions=[{name="GPS", sensors=["gnss"]}]', *sets])
+    res = run_scenario(sc, tmp_path / "r", quiet=True, replay=False)
+    avail = [v["availability"] for v in res.summary["statistics"]["GPS"]["vehicles"].values()]
+    assert avail and not any(avail)
+    note = res.summary["note"]
+    assert note.startswith("no solution estimated any vehicle") and cause in note
+    assert json.loads((tmp_path / "r" / "summary.json").read_text())["note"] == note
+
+
+def test_messages_the_filter_has_passed_are_noted(tmp_path):
+    """latency 0.5 s with the filter not waiting (filter_lag_s = 0): every follower message
+    arrives after its time tag was processed and is dropped as late; the run says so."""
+    sc = load_scenario(None, ["duration_s=3.0", 'solutions=[{name="GPS", sensors=["gnss"]}]',
+                              "exchange.latency_s=0.5", "exchange.filter_lag_s=0.0"])
+    res = run_scenario(sc, tmp_path / "r", quiet=True, replay=False)
+    ex = res.summary["exchange"]
+    assert ex["late"] > 0.5 * (ex["sent"] - ex["lost"])
+    assert f"{ex['late']} of the {ex['sent'] - ex['lost']} V2V messages not lost arrived after" in res.summary["note"]
+
+
+def test_a_run_that_estimates_has_no_note(short_run):
+    assert "note" not in short_run[1]

@@ -594,11 +594,43 @@ def _run_scenario(scenario: Scenario, out_dir: Path, *, quiet: bool, replay: boo
             "filter_membership": membership,
             "filter_counters": filter_counters,  # e.g. clock_jump_detected, divergence_reset, nonfinite_*  # vehicles the lead's filter dropped (silent) and re-added
         }
+        notes = []
         if t_end + 1e-9 < scenario.duration_s - scenario.step_length_s:
-            summary["note"] = f"all cluster vehicles reached the end of the route at t = {t_end:.1f} s"
+            notes.append(f"all cluster vehicles reached the end of the route at t = {t_end:.1f} s")
+        nothing = _why_nothing_estimated(scenario, sol_stats, summary["gnss"], summary["exchange"])
+        if nothing:
+            notes.append(nothing)
+        ex = summary["exchange"]
+        if ex and ex["late"] > 0.5 * (ex["sent"] - ex["lost"]):
+            notes.append(f"{ex['late']} of the {ex['sent'] - ex['lost']} V2V messages not lost arrived after the filter "
+                         f"had passed their time tag and were dropped (exchange.latency_s = {scenario.exchange.latency_s:g} s "
+                         f"> exchange.filter_lag_s = {scenario.exchange.lag_s:g} s)")
+        if notes:
+            summary["note"] = "; ".join(notes)
         summary["table"] = paper_table(sol_stats) if sol_stats else ""
         atomic_write_json(tmp / "summary.json", json_safe(summary))
     return RunResult(out_dir=Path(out_dir), summary=summary)
+
+
+def _why_nothing_estimated(scenario: Scenario, sol_stats: dict[str, Any], gnss: dict[str, Any],
+                           exchange: dict[str, int]) -> str | None:
+    """A note for a run in which no solution ever estimated a vehicle (every availability 0),
+    naming the likely cause; None otherwise. A vehicle's filter starts at its first GNSS epoch
+    with >= 4 satellites in common with the lead (``FilterConfig.init_min_satellites``), from
+    messages the exchange delivered."""
+    avail = [v.get("availability") for st in sol_stats.values() for v in st.get("vehicles", {}).values()]
+    if not scenario.solutions or not avail or any(a for a in avail):
+        return None
+    why = []
+    tracked = float(gnss.get("satellites_tracked_mean", 0.0))
+    if tracked < 4.0:
+        why.append(f"the receivers tracked {tracked:.1f} satellites on average (sensors.gnss.elevation_mask_deg = "
+                   f"{scenario.sensors.gnss.elevation_mask_deg:g}, start_utc {scenario.start_utc:%Y-%m-%dT%H:%M:%SZ})")
+    sent, lost = int(exchange.get("sent", 0)), int(exchange.get("lost", 0))
+    if sent and lost == sent:
+        why.append(f"every V2V message was lost (exchange.loss_probability = {scenario.exchange.loss_probability:g})")
+    return ("no solution estimated any vehicle: a vehicle's filter starts at its first GNSS epoch with >= 4 "
+            "satellites in common with the lead; " + ("; ".join(why) if why else "see filter_counters in summary.json"))
 
 
 def _sensor_stage(timing: dict[str, float], stage: str, t0: float, occ0: float,
