@@ -209,6 +209,7 @@ def test_runs_parquet_rows_are_the_runs_summaries(local_sweep):
             assert row[f"GPS.{veh}.across.std"] == st["across"]["std"]
             assert row[f"GPS.{veh}.availability"] == st["availability"]
         assert row["gnss.epochs"] == s["gnss"]["epochs"]
+        assert row["note"] == s.get("note", "") == ""  # (these runs estimate: no note)
     # the seeds differ, so the runs differ (no accidental seed reuse across workers)
     assert df["GPS.c1.1.along.std"].nunique() == 4
     assert json.loads((local_sweep / "sweep.json").read_text())["grid_columns"] == ["network.name"]
@@ -263,6 +264,25 @@ def test_a_run_sumo_rejects_is_recorded_and_the_others_succeed(external_schedule
     # failed runs are retried by the next invocation; finished ones are not
     again = run_study(study, tmp_path / "out", scheduler=external_scheduler)
     assert (again.executed, again.skipped, again.failed) == (2, 2, 2)
+
+
+@pytest.mark.sumo
+def test_a_runs_note_is_in_runs_parquet_and_the_report(external_scheduler, tmp_path):
+    """A run that completes but estimates nothing (every V2V message lost) is "ok" with its
+    summary's note in the ``note`` column, listed under "Runs with a note" in report.md."""
+    study = _write(tmp_path / "lossy.toml", 'seeds = [1]\n[set]\nduration_s = 3.0\n'
+                   'solutions = [{name = "GPS", sensors = ["gnss"]}]\n[grid]\n"exchange.loss_probability" = [0.0, 1.0]\n')
+    res = run_study(study, tmp_path / "out", scheduler=external_scheduler, quiet=True)
+    assert (res.executed, res.failed) == (2, 0)
+    df = pd.read_parquet(tmp_path / "out" / "runs.parquet").set_index("exchange.loss_probability")
+    lossy, clean = df.loc[1.0], df.loc[0.0]
+    assert "every V2V message was lost" in lossy["note"] and clean["note"] == ""
+    assert lossy["note"] == json.loads((tmp_path / "out" / "runs" / lossy["run_id"] / "summary.json").read_text())["note"]
+    assert lossy["GPS.c1.1.availability"] == 0.0 < clean["GPS.c1.1.availability"]
+    assert _cli(["sweep", "report", str(tmp_path / "out"), "--out", str(tmp_path / "rep")]) == 0
+    md = (tmp_path / "rep" / "report.md").read_text()
+    section = md.split("## Runs with a note", 1)[1]
+    assert lossy["run_id"] in section and clean["run_id"] not in section
 
 
 @pytest.mark.sumo

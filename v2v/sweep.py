@@ -32,7 +32,8 @@ Output folder::
     DIR/sweep.json          the study (grid columns, seeds, source) for ``v2v sweep report``
     DIR/runs/<run_id>/      each run's folder (written atomically by run_scenario)
     DIR/runs.parquet        one row per run: run_id, grid columns, seed, status, error,
-                            wall_s, then the run's summary.json flattened to numbers
+                            wall_s, note (summary.json's, "" if none), then the run's
+                            summary.json flattened to numbers
 
 ``run_id`` is ``<readable grid values>-s<seed>-<hash>``, the hash taken over the run's inputs
 (the base file's bytes, ``[set]``, its grid values, its seed): editing the study gives new ids
@@ -65,7 +66,7 @@ from typing import Any
 from v2v.errors import UserError
 
 STUDY_KEYS = ("base", "seeds", "replay", "save_measurements", "set", "grid")
-META_COLUMNS = ("run_id", "seed", "status", "error", "wall_s")
+META_COLUMNS = ("run_id", "seed", "status", "error", "note", "wall_s")
 RUNS_FILE = "runs.parquet"
 SWEEP_FILE = "sweep.json"
 MAX_SEED = 2**31 - 1
@@ -365,10 +366,10 @@ def execute_run(task: RunTask) -> dict[str, Any]:
         if summary is None:
             raise RuntimeError(f"the run finished but {task.out_dir}/summary.json is not readable")
         return {"run_id": task.run_id, "status": "ok", "error": "", "wall_s": float(summary.get("wall_s", math.nan)),
-                "metrics": flatten_summary(summary), "pid": os.getpid()}
+                "metrics": flatten_summary(summary), "note": str(summary.get("note", "")), "pid": os.getpid()}
     except Exception as exc:  # noqa: BLE001 - every failure becomes a row, the study goes on
         return {"run_id": task.run_id, "status": "failed", "error": one_line_error(exc),
-                "wall_s": round(time.perf_counter() - t0, 3), "metrics": {}, "pid": os.getpid()}
+                "wall_s": round(time.perf_counter() - t0, 3), "metrics": {}, "note": "", "pid": os.getpid()}
 
 
 # --------------------------------------------------------------------------- the sweep
@@ -385,18 +386,18 @@ class SweepResult:
     table: Any  # the runs.parquet DataFrame
 
 
-def _row(spec: RunSpec, status: str, error: str, wall_s: float, metrics: dict[str, float]) -> dict[str, Any]:
+def _row(spec: RunSpec, status: str, error: str, wall_s: float, metrics: dict[str, float], note: str = "") -> dict[str, Any]:
     return {"run_id": spec.run_id, **spec.labels, "seed": spec.seed, "status": status, "error": error,
-            "wall_s": wall_s, **metrics}
+            "wall_s": wall_s, "note": note, **metrics}
 
 
 def _runs_table(study: Study, rows: dict[str, dict[str, Any]]):
     import pandas as pd
 
     ordered = [rows[s.run_id] for s in study.runs if s.run_id in rows]
-    head = ["run_id", *study.grid_columns, "seed", "status", "error", "wall_s"]
+    head = ["run_id", *study.grid_columns, "seed", "status", "error", "wall_s", "note"]
     if not ordered:
-        return pd.DataFrame({c: pd.Series(dtype=object if c in ("run_id", "status", "error") else float) for c in head})
+        return pd.DataFrame({c: pd.Series(dtype=object if c in ("run_id", "status", "error", "note") else float) for c in head})
     metrics: dict[str, None] = {}
     for r in ordered:
         metrics.update(dict.fromkeys(k for k in r if k not in head))
@@ -637,7 +638,8 @@ def _scan(study: Study, runs_dir: Path) -> tuple[dict[str, dict[str, Any]], list
         if summary is None:
             pending.append(spec)
         else:
-            rows[spec.run_id] = _row(spec, "ok", "", float(summary.get("wall_s", math.nan)), flatten_summary(summary))
+            rows[spec.run_id] = _row(spec, "ok", "", float(summary.get("wall_s", math.nan)), flatten_summary(summary),
+                                     str(summary.get("note", "")))
     return rows, pending
 
 
@@ -690,7 +692,8 @@ def _run_study_locked(study: Study, out: Path, scheduler: str | None, workers: i
                         res = {"status": "failed", "error": f"dask: {one_line_error(exc)}",
                                "wall_s": math.nan, "metrics": {}}
                     failed += res["status"] != "ok"
-                    rows[spec.run_id] = _row(spec, res["status"], res["error"], res["wall_s"], res["metrics"])
+                    rows[spec.run_id] = _row(spec, res["status"], res["error"], res["wall_s"], res["metrics"],
+                                             res.get("note", ""))
                     bar.update(1)
                     bar.set_postfix(failed=failed)
                     if time.monotonic() >= next_flush:
@@ -889,6 +892,12 @@ def _report_markdown(src: Path, df, agg, grid_cols: list[str], solutions: list[s
         lines += _md_table(["run_id", "error"], [[r.run_id, str(r.error).replace("|", "/")] for r in failed.head(50).itertuples()])
         if len(failed) > 50:
             lines.append(f"... and {len(failed) - 50} more (see runs.parquet)")
+    noted = df[(df["status"] == "ok") & (df["note"].fillna("") != "")] if "note" in df else df.iloc[:0]
+    if len(noted):  # (a run that ended early, estimated nothing, or lost most messages to lateness)
+        lines += ["", "## Runs with a note", ""]
+        lines += _md_table(["run_id", "note"], [[r.run_id, str(r.note).replace("|", "/")] for r in noted.head(50).itertuples()])
+        if len(noted) > 50:
+            lines.append(f"... and {len(noted) - 50} more (see runs.parquet)")
     lines += ["", "All metrics, per grid combination: report.csv. Figure: report.png.", ""]
     return "\n".join(lines)
 
