@@ -130,6 +130,30 @@ def _say(quiet: bool, msg: str) -> None:
         print(msg, file=sys.stderr, flush=True)
 
 
+_PROGRESS_EVERY_S = 10.0  # wall seconds between progress lines when stderr is not a terminal
+
+
+class _ProgressLines:
+    """Progress of a run whose stderr is not a terminal (a log file, CI, nohup: no tqdm bar
+    there), one line after a chunk at most every :data:`_PROGRESS_EVERY_S` wall seconds:
+    simulated time so far, wall time, and the remaining wall time at the pace so far."""
+
+    def __init__(self, quiet: bool, name: str, duration_s: float):
+        self.on = not quiet and not sys.stderr.isatty()
+        self.name, self.duration_s = name, duration_s
+        self.t0 = self.last = time.perf_counter()
+
+    def chunk_done(self, t_s: float) -> None:
+        now = time.perf_counter()
+        if not self.on or now - self.last < _PROGRESS_EVERY_S or not 0.0 < t_s < self.duration_s - 1e-6:
+            return
+        self.last = now
+        wall = now - self.t0
+        left = wall * max(self.duration_s - t_s, 0.0) / t_s
+        print(f"{self.name}: {t_s:.0f} of {self.duration_s:.0f} s simulated, {wall:.0f} s wall, ~{left:.0f} s to go",
+              file=sys.stderr, flush=True)
+
+
 def _fault_needs_whole_run(scenario: Scenario) -> str | None:
     """Why this scenario's faults cannot be streamed bit-identically (None: they can).
 
@@ -493,6 +517,7 @@ def _run_scenario(scenario: Scenario, out_dir: Path, *, quiet: bool, replay: boo
             add_step(step)
             t_end = step.t_s
             next_cut = step.t_s + chunk
+            lines = _ProgressLines(quiet, scenario.name, scenario.duration_s)
             with _progress(n_steps, quiet, f"SUMO {scenario.name}") as bar:
                 for _ in range(n_steps):
                     step = sim.step()
@@ -507,6 +532,7 @@ def _run_scenario(scenario: Scenario, out_dir: Path, *, quiet: bool, replay: boo
                         timing["traffic"] += time.perf_counter() - t0
                         process(final=False)
                         truth.flush()  # one row group per chunk: memory O(chunk), not O(10 000 rows)
+                        lines.chunk_done(step.t_s)
                         t0 = time.perf_counter()
                         next_cut += chunk
             stats = sim.stats
