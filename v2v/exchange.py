@@ -15,6 +15,7 @@ from __future__ import annotations
 
 import heapq
 import itertools
+from collections.abc import Iterable
 from dataclasses import dataclass
 from typing import Any
 
@@ -55,14 +56,25 @@ class V2VExchange:
         self._processed_until_s = -np.inf
 
     def send(self, msg: Message) -> None:
-        if msg.sender == self.lead_id:  # on board the lead: no radio link
-            heapq.heappush(self._arrived, (msg.t_s, next(self._seq), msg))
-            return
-        self.stats.sent += 1
-        if self.config.loss_probability > 0.0 and self.rng.random() < self.config.loss_probability:
-            self.stats.lost += 1
-            return
-        heapq.heappush(self._in_flight, (msg.t_s + self.config.latency_s, next(self._seq), msg))
+        self.send_many((msg,))
+
+    def send_many(self, msgs: Iterable[Message]) -> None:
+        """:meth:`send` of each message in turn (the same loss draws, in the same order)."""
+        lead, p, latency = self.lead_id, self.config.loss_probability, self.config.latency_s
+        arrived, in_flight, seq, push = self._arrived, self._in_flight, self._seq, heapq.heappush
+        draw = self.rng.random
+        sent = lost = 0
+        for msg in msgs:
+            if msg.sender == lead:  # on board the lead: no radio link
+                push(arrived, (msg.t_s, next(seq), msg))
+                continue
+            sent += 1
+            if p > 0.0 and draw() < p:
+                lost += 1
+                continue
+            push(in_flight, (msg.t_s + latency, next(seq), msg))
+        self.stats.sent += sent
+        self.stats.lost += lost
 
     @property
     def processed_until_s(self) -> float:
@@ -73,16 +85,22 @@ class V2VExchange:
 
     def deliver(self, now_s: float) -> list[Message]:
         """Messages whose time tags the filter may process at ``now_s``, in time-tag order."""
-        while self._in_flight and self._in_flight[0][0] <= now_s + 1e-9:
-            _, seq, msg = heapq.heappop(self._in_flight)
-            if msg.t_s < self._processed_until_s - 1e-9:
-                self.stats.late += 1
+        in_flight, arrived, pop, push = self._in_flight, self._arrived, heapq.heappop, heapq.heappush
+        due = now_s + 1e-9
+        too_late = self._processed_until_s - 1e-9  # (changes only below, after the arrivals)
+        late = 0
+        while in_flight and in_flight[0][0] <= due:
+            _, seq, msg = pop(in_flight)
+            if msg.t_s < too_late:
+                late += 1
                 continue
-            heapq.heappush(self._arrived, (msg.t_s, seq, msg))
+            push(arrived, (msg.t_s, seq, msg))
+        self.stats.late += late
         horizon = now_s - self.config.lag_s + 1e-9
         out = []
-        while self._arrived and self._arrived[0][0] <= horizon:
-            out.append(heapq.heappop(self._arrived)[2])
+        while arrived and arrived[0][0] <= horizon:
+            out.append(pop(arrived)[2])
         self._processed_until_s = max(self._processed_until_s, horizon)
-        self.stats.delivered += sum(1 for m in out if m.sender != self.lead_id)
+        lead = self.lead_id
+        self.stats.delivered += sum(1 for m in out if m.sender != lead)
         return out

@@ -15,6 +15,7 @@ import itertools
 from collections import Counter
 from collections.abc import Callable, Iterable, Sequence
 from dataclasses import dataclass, field
+from operator import itemgetter
 from typing import Any
 
 import numpy as np
@@ -204,11 +205,16 @@ class Event:
 
 
 _KIND_RANK = {"gnss": 0, "uwb": 1, "bearing": 2}
+_SEND_KEY = itemgetter(0, 1, 2)  # of ExchangeStream's unsent (t_s, kind rank, seq, message)
 
 
 def _bad_prns(eps: dict[str, GnssEpoch]) -> tuple[dict[str, frozenset[int]], dict[str, frozenset[int]]]:
     """Per vehicle: the PRNs (first occurrence in the epoch) that are NLOS or carry an injected
     fault, and the NLOS ones among them (:class:`Event` ``bad_prns``, ``nlos_prns``)."""
+    none: frozenset[int] = frozenset()
+    if eps and all("fault" not in ep.errors_m for ep in eps.values()) \
+            and np.concatenate([np.asarray(ep.los, dtype=bool) for ep in eps.values()]).all():
+        return dict.fromkeys(eps, none), dict.fromkeys(eps, none)  # the common case, in one pass
     bad_out: dict[str, frozenset[int]] = {}
     nlos_out: dict[str, frozenset[int]] = {}
     for v, ep in eps.items():
@@ -262,9 +268,14 @@ class ExchangeStream:
             self._add(t_s, v, "gnss", ep)
 
     def add_uwb(self, uwb: UwbRanges | None) -> None:
-        if uwb is not None:
-            for k in range(uwb.n):
-                self._add(float(uwb.t_s[k]), uwb.a[k], "uwb", (uwb, k))
+        """One message per range, sent by its initiator ``a``."""
+        if uwb is None or not uwb.n:
+            return
+        kind_rank, seq, dropped = _KIND_RANK["uwb"], self._seq, self.dropped
+        self._msgs += [(t, kind_rank, next(seq), Message(t, a, "uwb", (uwb, k)))
+                       for k, (t, a) in enumerate(zip(uwb.t_s.tolist(), uwb.a, strict=True))
+                       if dropped is None or not dropped(a, t)]
+        self._sorted = False
 
     def add_bearings(self, bearings: Bearings | None) -> None:
         """One message per measuring vehicle and time tag, carrying all its bearings of that
@@ -289,8 +300,11 @@ class ExchangeStream:
         ends = np.cumsum(np.bincount(g, minlength=len(by_first))).tolist()
         starts = [0, *ends[:-1]]
         heads = first[by_first]
-        for k0, k1, h, tk in zip(starts, ends, heads.tolist(), t[heads].tolist(), strict=True):
-            self._add(tk, bearings.a[h], "bearing", (bearings, members[k0:k1]))
+        kind_rank, seq, dropped, a = _KIND_RANK["bearing"], self._seq, self.dropped, bearings.a
+        self._msgs += [(tk, kind_rank, next(seq), Message(tk, a[h], "bearing", (bearings, members[k0:k1])))
+                       for k0, k1, h, tk in zip(starts, ends, heads.tolist(), t[heads].tolist(), strict=True)
+                       if dropped is None or not dropped(a[h], tk)]
+        self._sorted = False
 
     def add_output_time(self, t_s: float) -> None:
         self._times.append(t_s)
@@ -298,26 +312,29 @@ class ExchangeStream:
     def advance(self, known_until_s: float, final: bool = False) -> list[Event]:
         """Send and deliver at every output epoch ``now`` with ``now + 1e-9 < known_until_s``
         (all of them when ``final``, then everything still in flight); return the complete events."""
-        if not self._sorted:
-            self._msgs.sort(key=lambda m: (m[0], m[1], m[2]))
+        if not self._sorted:  # by (time tag, kind rank, sequence number): seq is unique, so the
+            self._msgs.sort(key=_SEND_KEY)  # message itself is never compared
             self._sorted = True
         exch = self.exchange
         i = 0
         n_done = 0
         msgs = self._msgs
+        n = len(msgs)
         for now in self._times:
             if not final and not now + 1e-9 < known_until_s:
                 break
-            while i < len(msgs) and msgs[i][0] <= now + 1e-9:
-                exch.send(msgs[i][3])
-                i += 1
+            j = i
+            while j < n and msgs[j][0] <= now + 1e-9:
+                j += 1
+            if j > i:
+                exch.send_many([m[3] for m in msgs[i:j]])
+                i = j
             self._delivered += exch.deliver(now)
             n_done += 1
         del self._times[:n_done]
         if final:
-            while i < len(msgs):
-                exch.send(msgs[i][3])
-                i += 1
+            exch.send_many([m[3] for m in msgs[i:]])
+            i = n
             self._delivered += exch.deliver(1e18)
         del msgs[:i]
         self._delivered.sort(key=lambda m: (m.t_s, _KIND_RANK[m.kind]))
