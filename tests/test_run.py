@@ -417,3 +417,26 @@ def test_a_run_logged_to_a_file_reports_progress(tmp_path, monkeypatch, capsys):
              for ln in capsys.readouterr().err.splitlines()]
     t = [int(m.group(1)) for m in found if m]
     assert t == [10, 20], t  # (the last chunk ends the run: its summary follows, not a progress line)
+
+
+def test_first_run_on_a_machine_says_the_kernels_compile(tmp_path, monkeypatch, capsys):
+    """Before a run's long first-use compilation (numba, ~1 min, silent otherwise) the run says
+    so; with the kernels cached it does not. ``cache_missing`` reads numba's cache: empty in a
+    fresh cache folder (NUMBA_CACHE_DIR), present here once a run has compiled the kernels."""
+    import os
+    import subprocess
+    import sys
+
+    from v2v.estimation import kernels
+
+    sc = load_scenario(None, ["duration_s=1.0", 'solutions=[{name="GPS", sensors=["gnss"]}]'])
+    run_scenario(sc, tmp_path / "a", quiet=False, replay=False)
+    assert not kernels.cache_missing()
+    assert "compiling the filter's kernels" not in capsys.readouterr().err
+    monkeypatch.setattr(kernels, "cache_missing", lambda: True)
+    run_scenario(sc, tmp_path / "b", quiet=False, replay=False)
+    assert "compiling the filter's kernels (numba)" in capsys.readouterr().err
+    env = {**os.environ, "NUMBA_CACHE_DIR": str(tmp_path / "empty_cache")}
+    p = subprocess.run([sys.executable, "-c", "from v2v.estimation import kernels; print(kernels.cache_missing())"],
+                       env=env, capture_output=True, text=True, timeout=120)
+    assert p.stdout.strip() == "True", p.stderr

@@ -376,6 +376,10 @@ def _run_scenario(scenario: Scenario, out_dir: Path, *, quiet: bool, replay: boo
             _say(quiet, f"{scenario.name}: {len(vehicles)} vehicles, {scenario.duration_s:.0f} s in chunks of "
                         f"{chunk if math.isfinite(chunk) else scenario.duration_s:.0f} s ...")
             _say(quiet or n_filters == 0, f"filtering: {len(scenario.solutions)} solution(s) x {len(scenario.clusters)} cluster(s)")
+            from v2v.estimation import kernels
+
+            _say(quiet or n_filters == 0 or not kernels.cache_missing(),
+                 "compiling the filter's kernels (numba): the first run on this machine takes about a minute longer")
 
             # sensors -------------------------------------------------------------------
             gnss = build_gnss(scenario, gps_start, seeds[STREAM_GNSS], occlusion, net.georef)

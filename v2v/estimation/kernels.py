@@ -1950,3 +1950,16 @@ def sd_doppler_vehicles(x, P, base, base_vel, rot, ps, vs, idrift, sv_cat, svv_c
         _store(order, nu, s, st, a, b, o, nu_j, s_j, st_j)
     lazy_flush(P, Q, kq)
     return n_flag, order, nu, s, st
+
+
+def cache_missing() -> bool:
+    """Whether this machine has yet to compile these kernels (``cache=True``: numba compiles a
+    kernel on its first call, ~1 min for all of them, and reuses the cached machine code
+    afterwards), judged by numba's cache index of :func:`sd_pseudorange_vehicles`; False when
+    it cannot be told (another numba's internals). For the run's notice before a long silence."""
+    from pathlib import Path
+
+    try:
+        return not Path(sd_pseudorange_vehicles._cache._cache_file._index_path).is_file()
+    except (AttributeError, TypeError):
+        return False
