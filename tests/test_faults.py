@@ -3,6 +3,7 @@
 from __future__ import annotations
 
 import numpy as np
+import pytest
 from scipy import stats
 
 from v2v.faults import (
@@ -101,3 +102,49 @@ def test_bearing_outage_and_message_bursts():
     fs = [FaultSection(kind="message_loss", start_s=1.0, duration_s=2.0, vehicles=["c1.2"])]
     assert message_dropped(fs, "c1.2", 1.5) and not message_dropped(fs, "c1.2", 3.0)
     assert not message_dropped(fs, "c1.1", 1.5)
+
+
+def _sky_in_view(sc) -> set[int]:
+    """PRNs above the mask at the scenario's start and origin (what `v2v sky --scenario` lists)."""
+    from v2v.run import resolve_network
+    from v2v.sensors.gnss.constellation import NominalConstellation
+    from v2v.sensors.gnss.sky import sky_view
+    from v2v.sensors.gnss.time import utc_to_gps_s
+
+    lat, lon = resolve_network(sc).georef.xy_to_geodetic(0.0, 0.0)
+    t = utc_to_gps_s(sc.start_utc)
+    df = sky_view(float(lat), float(lon), sc.network.origin_h_m, t, NominalConstellation(t),
+                  np.radians(sc.sensors.gnss.elevation_mask_deg))
+    return set(df["prn"].astype(int))
+
+
+
+@pytest.mark.sumo
+def test_faults_that_cannot_act_are_refused_or_noted(tmp_path):
+    """A fault that would silently do nothing is not silent: a PRN the sky does not have is a
+    one-line error of the check and of the run (faults.<i>.prns); a fault that starts after the
+    run's end, and one whose satellites are all below the horizon in its window, are named in
+    the run's note; one on a satellite in view drops its signals (counted) and is not."""
+    from v2v.config.scenario import load_scenario
+    from v2v.errors import UserError
+    from v2v.run import check_scenario, run_scenario
+
+    base = ["duration_s=3.0", 'solutions=[{name="GPS", sensors=["gnss"]}]']
+    sc = load_scenario(None, base)
+    up = _sky_in_view(sc)
+    down = min(set(range(1, 28)) - up)  # a PRN of the 27-slot nominal sky that is below the horizon
+    bad = load_scenario(None, [*base, 'faults=[{kind="satellites_lost", start_s=1.0, duration_s=1.0, prns=[99]}]'])
+    for check in (lambda: check_scenario(bad), lambda: run_scenario(bad, tmp_path / "bad", quiet=True, replay=False)):
+        with pytest.raises(UserError) as ei:
+            check()
+        assert ei.value.field == "faults.0.prns" and "[99]" in ei.value.message
+    assert not (tmp_path / "bad").exists()
+    sc = load_scenario(None, [*base, "faults=[" + ", ".join([
+        '{kind="clock_jump", start_s=120.0, vehicles=["c1.1"]}',
+        f'{{kind="satellites_lost", start_s=1.0, duration_s=1.0, prns=[{down}]}}',
+        f'{{kind="satellites_lost", start_s=1.0, duration_s=1.0, prns=[{min(up)}]}}']) + "]"])
+    res = run_scenario(sc, tmp_path / "r", quiet=True, replay=False)
+    note = res.summary["note"]
+    assert "never injected: faults.0 (clock_jump at 120 s)" in note
+    assert "faults.1 (satellites_lost) changed no measurement" in note and "faults.2" not in note
+    assert res.summary["faults_injected"].get("2:satellites_lost", 0) > 0

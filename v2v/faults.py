@@ -90,6 +90,25 @@ class FaultSection(BaseModel):
         return self.vehicles == "all" or vehicle in self.vehicles
 
 
+def check_fault_prns(faults: list[FaultSection], sky_prns) -> None:
+    """UserError naming ``faults.<i>.prns`` when a fault lists a PRN the run's sky does not have
+    (``sky_prns``: the ephemeris' PRNs): such a fault would silently never match a signal."""
+    from v2v.errors import UserError
+
+    have = {int(p) for p in sky_prns}
+    for i, f in enumerate(faults):
+        missing = sorted({int(p) for p in f.prns} - have)
+        if missing:
+            raise UserError(f"PRN(s) {missing} are not in the run's sky (its PRNs: {min(have)}-{max(have)})"
+                            if have else f"PRN(s) {missing} are not in the run's sky (it has none)",
+                            field=f"faults.{i}.prns", fix="list PRNs of the constellation (`v2v sky` shows them)")
+
+
+def unreachable_faults(faults: list[FaultSection], duration_s: float) -> list[str]:
+    """The faults that start at or after the run's end, so never act: ``faults.<i> (<kind> at <start> s)``."""
+    return [f"faults.{i} ({f.kind} at {f.start_s:g} s)" for i, f in enumerate(faults) if f.start_s >= duration_s - 1e-9]
+
+
 @dataclass
 class FaultLog:
     """What was injected: counts per fault (index in the scenario list) and kind."""

@@ -226,11 +226,11 @@ def absolute_paths(scenario: Scenario, base_dir: Path | None) -> Scenario:
 
 
 def check_scenario(scenario: Scenario, base_dir: Path | None = None) -> None:
-    """Check, without running, what a run of ``scenario`` checks before SUMO starts beyond the
+    """Check, without running, what a run of ``scenario`` checks in its set-up beyond the
     scenario schema (which :func:`v2v.config.scenario.load_scenario` applies): the network,
     built from its sources if it is not yet (its route, its polygon files and their buildings),
-    and the sky (a RINEX file: present, readable, spanning the run). Raises the
-    :class:`UserError` the run would; ``base_dir`` as for :func:`run_scenario`. ``v2v scenario
+    the sky (a RINEX file: present, readable, spanning the run) and the faults' PRNs (in that
+    sky). Raises the :class:`UserError` the run would; ``base_dir`` as for :func:`run_scenario`. ``v2v scenario
     check`` and ``v2v sweep`` call it, so a study's bad value stops the study before any run
     instead of failing each one. Only the light modules are imported (no filter, no compiled
     kernels: a sweep's own process stays small)."""
@@ -242,7 +242,11 @@ def check_scenario(scenario: Scenario, base_dir: Path | None = None) -> None:
     net = resolve_network(scenario)
     if net.poly_paths:
         load_polygons(list(net.poly_paths))
-    ephemeris_source(scenario.sensors.gnss.ephemeris, float(utc_to_gps_s(scenario.start_utc)), scenario.duration_s)
+    eph = ephemeris_source(scenario.sensors.gnss.ephemeris, float(utc_to_gps_s(scenario.start_utc)), scenario.duration_s)
+    if scenario.faults:
+        from v2v.faults import check_fault_prns
+
+        check_fault_prns(list(scenario.faults), eph.prns())
 
 
 def run_scenario(
@@ -289,6 +293,7 @@ def _run_scenario(scenario: Scenario, out_dir: Path, *, quiet: bool, replay: boo
 
     import v2v.pipeline as pipeline  # run_solution via the module: tools may wrap it (experiments/fault_campaign.py)
     from v2v.exchange import V2VExchange
+    from v2v.faults import check_fault_prns, unreachable_faults
     from v2v.metrics.summary import json_safe, paper_table, solution_statistics
     from v2v.pipeline import (
         STREAM_BEARING,
@@ -383,6 +388,8 @@ def _run_scenario(scenario: Scenario, out_dir: Path, *, quiet: bool, replay: boo
 
             # sensors -------------------------------------------------------------------
             gnss = build_gnss(scenario, gps_start, seeds[STREAM_GNSS], occlusion, net.georef)
+            if scenario.faults:
+                check_fault_prns(list(scenario.faults), gnss.eph.prns())
             uwb_net = build_uwb(scenario, vehicles, seeds[STREAM_UWB]) if "uwb" in used else None
             uwb_rng = np.random.default_rng(seeds[STREAM_UWB].spawn(2)[1]) if uwb_net is not None else None
             uwb_stream = None
@@ -627,6 +634,16 @@ def _run_scenario(scenario: Scenario, out_dir: Path, *, quiet: bool, replay: boo
         notes = []
         if t_end + 1e-9 < scenario.duration_s - scenario.step_length_s:
             notes.append(f"all cluster vehicles reached the end of the route at t = {t_end:.1f} s")
+        never = unreachable_faults(list(scenario.faults), scenario.duration_s)
+        if never:
+            notes.append(f"{len(never)} fault(s) start at or after the run's end (duration_s = {scenario.duration_s:g} s) "
+                         f"and were never injected: {', '.join(never)}")
+        idle = [f"faults.{i} ({f.kind})" for i, f in enumerate(scenario.faults)
+                if f.kind != "message_loss" and f.start_s < scenario.duration_s - 1e-9  # (the exchange drops those)
+                and fault_log is not None and not fault_log.counts.get(f"{i}:{f.kind}")]
+        if idle:
+            notes.append(f"{', '.join(idle)} changed no measurement (its PRNs not in view, its vehicles without such "
+                         "measurements in its window, or its probability drew none)")
         nothing = _why_nothing_estimated(scenario, sol_stats, summary["gnss"], summary["exchange"])
         if nothing:
             notes.append(nothing)

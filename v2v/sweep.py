@@ -17,7 +17,7 @@ A *study file* is TOML, data only::
 Keys in ``[grid]`` and ``[set]`` are the dotted ``--set`` paths of
 :func:`v2v.config.scenario.apply_override` (quoted, or written as nested TOML tables);
 values replace, as ``--set`` does. Every combination is validated with
-:func:`~v2v.config.scenario.load_scenario`, and each distinct one's set-up (network, sky)
+:func:`~v2v.config.scenario.load_scenario`, and each distinct one's set-up (network, sky, faults' PRNs)
 with :func:`v2v.run.check_scenario`, before any run starts.
 
 Execution: each run is one :func:`v2v.run.run_scenario` call in a Dask worker *process*
@@ -203,7 +203,7 @@ def _read_seeds(raw: Any, where: str) -> tuple[int, ...]:
 
 def load_study(path: str | Path) -> Study:
     """Read a study file and validate every run's scenario, including what a run checks
-    before SUMO starts (:func:`v2v.run.check_scenario`: network, sky); raises
+    before SUMO starts (:func:`v2v.run.check_scenario`: network, sky, faults' PRNs); raises
     :class:`UserError`."""
 
     from v2v.config.scenario import load_scenario, read_toml
@@ -263,8 +263,8 @@ def load_study(path: str | Path) -> Study:
         desc = ", ".join(f"{k}={v}" for k, v in labels.items()) or "the base scenario"
         try:
             first = load_scenario(base, [*fixed_ov, *grid_ov, f"seed={seeds[0]}"])
-            # what the run checks before SUMO starts (network, sky), once per distinct input
-            key = first.model_dump_json(include={"network", "sensors", "start_utc", "duration_s"})
+            # what the run's set-up checks (network, sky, faults' PRNs), once per distinct input
+            key = first.model_dump_json(include={"network", "sensors", "start_utc", "duration_s", "faults"})
             if key not in checked:
                 check_scenario(first, study.base_dir)
                 checked.add(key)
