@@ -571,4 +571,6 @@ def main(argv: list[str] | None = None) -> int:
 
 
 if __name__ == "__main__":
-    sys.exit(main())
+    from v2v.errors import script_main
+
+    sys.exit(script_main(main, "fault_campaign.py"))

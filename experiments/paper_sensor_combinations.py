@@ -328,4 +328,6 @@ def main(argv: list[str] | None = None) -> int:
 
 
 if __name__ == "__main__":
-    raise SystemExit(main())
+    from v2v.errors import script_main
+
+    sys.exit(script_main(main, "paper_sensor_combinations.py"))

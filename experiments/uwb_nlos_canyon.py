@@ -272,4 +272,6 @@ def main(argv: list[str] | None = None) -> int:
 
 
 if __name__ == "__main__":
-    sys.exit(main())
+    from v2v.errors import script_main
+
+    sys.exit(script_main(main, "uwb_nlos_canyon.py"))

@@ -97,3 +97,23 @@ def test_fcw_study_quick(tmp_path: Path):
     straight = same_edge & ~pd.Series(tk.loc["c1.0", "edge"].reindex(kk).to_numpy()).str.startswith(":").to_numpy()
     assert straight.sum() > 50
     np.testing.assert_allclose(k["closing_mps"].to_numpy()[straight], (v_f - v_a)[straight], atol=0.05)
+
+
+@pytest.mark.parametrize(("script", "args", "field"), [
+    ("fcw_study.py", ["--vehicles", "1"], "clusters.0.vehicles"),
+    ("lane_level.py", ["--rinex", "/nonexistent/brdc.nav", "--duration-s", "2"], "sensors.gnss.ephemeris"),
+    ("carrier_phase.py", ["--seeds", "-1"], "seed"),
+])
+def test_experiment_scripts_refuse_bad_input_in_one_line(tmp_path, script, args, field):
+    """An experiment run as a script treats a user's mistake as `v2v` does: one line naming the
+    field and the fix on stderr, exit status 2, no traceback, no result file written."""
+    import subprocess
+    import sys
+
+    out = tmp_path / "out"
+    p = subprocess.run([sys.executable, str(EXP / script), "--out", str(out), *args], capture_output=True, text=True,
+                       timeout=300)
+    lines = [ln for ln in p.stderr.splitlines() if ln.strip()]
+    assert p.returncode == 2 and "Traceback" not in p.stderr, p.stderr
+    assert len(lines) == 1 and lines[0].startswith(f"{script}: error: {field}: ") and "fix:" in lines[0], lines
+    assert not [q for q in out.rglob("*") if q.is_file()]  # (an empty folder may be left: nothing that looks whole)

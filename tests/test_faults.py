@@ -121,10 +121,11 @@ def _sky_in_view(sc) -> set[int]:
 
 @pytest.mark.sumo
 def test_faults_that_cannot_act_are_refused_or_noted(tmp_path):
-    """A fault that would silently do nothing is not silent: a PRN the sky does not have is a
-    one-line error of the check and of the run (faults.<i>.prns); a fault that starts after the
-    run's end, and one whose satellites are all below the horizon in its window, are named in
-    the run's note; one on a satellite in view drops its signals (counted) and is not."""
+    """A fault that would silently do nothing is not silent: PRNs none of which the sky has are
+    a one-line error of the check and of the run (faults.<i>.prns; some missing is allowed); a
+    fault that starts after the run's end, and one whose satellites are all below the horizon in
+    its window, are named in the run's note; one on a satellite in view drops its signals
+    (counted) and is not."""
     from v2v.config.scenario import load_scenario
     from v2v.errors import UserError
     from v2v.run import check_scenario, run_scenario
@@ -142,7 +143,7 @@ def test_faults_that_cannot_act_are_refused_or_noted(tmp_path):
     sc = load_scenario(None, [*base, "faults=[" + ", ".join([
         '{kind="clock_jump", start_s=120.0, vehicles=["c1.1"]}',
         f'{{kind="satellites_lost", start_s=1.0, duration_s=1.0, prns=[{down}]}}',
-        f'{{kind="satellites_lost", start_s=1.0, duration_s=1.0, prns=[{min(up)}]}}']) + "]"])
+        f'{{kind="satellites_lost", start_s=1.0, duration_s=1.0, prns=[{min(up)}, 99]}}']) + "]"])
     res = run_scenario(sc, tmp_path / "r", quiet=True, replay=False)
     note = res.summary["note"]
     assert "never injected: faults.0 (clock_jump at 120 s)" in note

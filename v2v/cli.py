@@ -13,9 +13,7 @@ import sys
 from pathlib import Path
 
 from v2v import __version__
-from v2v.errors import UserError
-
-EXIT_USER_ERROR = 2
+from v2v.errors import EXIT_USER_ERROR, UserError
 
 
 class _Parser(argparse.ArgumentParser):

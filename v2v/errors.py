@@ -7,6 +7,9 @@ status 2; it never shows a traceback for these.
 
 from __future__ import annotations
 
+import sys
+from collections.abc import Callable
+
 
 class UserError(Exception):
     """A user's input is wrong. ``field`` names what is wrong, ``fix`` says what to do."""
@@ -26,3 +29,20 @@ class UserError(Exception):
         if self.fix:
             parts.append(f"fix: {self.fix}")
         return " -- ".join(parts).replace("\n", " ")
+
+
+EXIT_USER_ERROR = 2
+
+
+def script_main(main: Callable[[], int | None], prog: str) -> int:
+    """Run a script's ``main()`` as ``v2v`` runs a command (the experiments' ``__main__``): a
+    :class:`UserError` is one line on stderr, ``<prog>: error: <field>: ... -- fix: ...``, and
+    exit status 2; Ctrl-C is one line and 130; anything else propagates (a bug: its traceback)."""
+    try:
+        return int(main() or 0)
+    except UserError as exc:
+        print(f"{prog}: error: {exc.one_line()}", file=sys.stderr)
+        return EXIT_USER_ERROR
+    except KeyboardInterrupt:
+        print(f"{prog}: interrupted", file=sys.stderr)
+        return 130

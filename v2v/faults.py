@@ -91,17 +91,18 @@ class FaultSection(BaseModel):
 
 
 def check_fault_prns(faults: list[FaultSection], sky_prns) -> None:
-    """UserError naming ``faults.<i>.prns`` when a fault lists a PRN the run's sky does not have
-    (``sky_prns``: the ephemeris' PRNs): such a fault would silently never match a signal."""
+    """UserError naming ``faults.<i>.prns`` when none of a fault's PRNs is in the run's sky
+    (``sky_prns``: the ephemeris' PRNs): such a fault could never match a signal. Some PRNs
+    missing is allowed (a set such as "the odd PRNs 1-31" over a 27-slot sky)."""
     from v2v.errors import UserError
 
     have = {int(p) for p in sky_prns}
     for i, f in enumerate(faults):
-        missing = sorted({int(p) for p in f.prns} - have)
-        if missing:
-            raise UserError(f"PRN(s) {missing} are not in the run's sky (its PRNs: {min(have)}-{max(have)})"
-                            if have else f"PRN(s) {missing} are not in the run's sky (it has none)",
-                            field=f"faults.{i}.prns", fix="list PRNs of the constellation (`v2v sky` shows them)")
+        listed = sorted({int(p) for p in f.prns})
+        if listed and not have.intersection(listed):
+            sky = f"its PRNs: {min(have)}-{max(have)}" if have else "it has none"
+            raise UserError(f"none of PRN(s) {listed} is in the run's sky ({sky})", field=f"faults.{i}.prns",
+                            fix="list PRNs of the constellation (`v2v sky` shows them)")
 
 
 def unreachable_faults(faults: list[FaultSection], duration_s: float) -> list[str]:
