@@ -220,8 +220,9 @@ def test_constraint_errors_say_the_bound_or_the_type(override, fix):
 @pytest.mark.sumo
 def test_scenario_check_refuses_what_a_run_refuses_before_sumo_starts(tmp_path, capsys):
     """`scenario check` says OK only for a scenario a run gets past its set-up with: a UWB radio
-    profile that does not exist, a RINEX file that is not there, a route the net does not have
-    are one-line errors naming the field, exit 2, and nothing printed; a relative file path is
+    profile that does not exist, a RINEX file that is not there, a route the net does not have,
+    radios of two types asked to range to each other are one-line errors naming the field, exit
+    2, and nothing printed; a relative file path is
     taken relative to the scenario file, as the run takes it. Profile names are matched
     case-insensitively, as the run matches them."""
     sc = tmp_path / "sc.toml"
@@ -229,7 +230,9 @@ def test_scenario_check_refuses_what_a_run_refuses_before_sumo_starts(tmp_path, 
     cases = [("sensors.uwb.profile=decawave", "sensors.uwb.profile", "unknown UWB radio profile 'decawave'"),
              ('sensors.uwb.vehicle_profiles={"c1.1"="bogus"}', 'sensors.uwb.vehicle_profiles."c1.1"', "'bogus'"),
              ("sensors.gnss.ephemeris=sky.nav", "sensors.gnss.ephemeris", repr(str(tmp_path / "sky.nav"))),
-             ("network.route=nope", "network.route", "no route named 'nope'")]
+             ("network.route=nope", "network.route", "no route named 'nope'"),
+             ('sensors.uwb.vehicle_profiles={"c1.1"="tdc"}', "sensors.uwb.pairs", "radios of different types"),
+             ("sensors.uwb.pairs=[['c1.1','c1.1']]", "sensors.uwb.pairs", "ranges a radio to itself")]
     for kv, field, text in cases:
         assert main(["scenario", "check", str(sc), "--set", kv]) == 2, kv
         captured = capsys.readouterr()

@@ -531,3 +531,35 @@ def test_batched_occlusion_equals_per_step_links(prof):
     open_sky = net(prof, ids=ids, seed=5).simulate(steps, np.random.default_rng(2))
     assert r.n < open_sky.n
     assert r.los.sum() > 10 and (~r.los).any() and (r.errors_m["nlos"][~r.los] > 0).all()
+
+
+@pytest.mark.parametrize(("profiles", "pairs", "ok"), [
+    ({"c1.1": "tdc"}, "all", False),  # every pair: c1.1's TDC radio would range to MSSI ones
+    ({"c1.1": "tdc", "c1.2": "tdc"}, [["c1.1", "c1.2"]], True),  # the TDC pair alone
+    ({"c1.1": "TDC"}, [["c1.0", "c1.2"]], True),  # MSSI with MSSI (case as given)
+    ({}, [["c1.1", "c1.1"]], False),  # a radio to itself
+])
+def test_scenario_schema_refuses_the_pairs_the_uwb_network_refuses(profiles, pairs, ok):
+    """The schema repeats the network's pair rules (so a scenario check needs no sensor module):
+    for each case both refuse, or both accept."""
+    import json
+
+    from v2v.config.scenario import load_scenario
+
+    sets = [f"sensors.uwb.vehicle_profiles={json.dumps(profiles).replace(':', '=')}" if profiles else "duration_s=1.0",
+            f"sensors.uwb.pairs={json.dumps(pairs)}"]
+    try:
+        sc = load_scenario(None, sets)
+        schema_ok = True
+    except UserError as exc:
+        schema_ok = False
+        assert exc.field == "sensors.uwb.pairs"
+    try:
+        uwb.UwbNetwork(vehicle_ids=["c1.0", "c1.1", "c1.2"], rng=np.random.default_rng(0), profile="mssi",
+                       vehicle_profiles=profiles or None, pairs=pairs if pairs == "all" else [tuple(p) for p in pairs])
+        network_ok = True
+    except UserError:
+        network_ok = False
+    assert schema_ok == network_ok == ok
+    if ok:
+        assert sc.sensors.uwb.pairs == ("all" if pairs == "all" else [tuple(p) for p in pairs])

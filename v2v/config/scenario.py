@@ -13,6 +13,7 @@ scenario is saved beside every result as ``scenario.resolved.toml``.
 from __future__ import annotations
 
 import difflib
+import itertools
 import tomllib
 from datetime import UTC, datetime
 from pathlib import Path
@@ -175,7 +176,26 @@ class Scenario(_Model):
         unknown = sorted(set(named) - ids)
         if unknown:
             raise ValueError(f"sensors name unknown vehicle(s) {unknown}; vehicles are {sorted(ids)}")
+        self._check_uwb_pairs()
         return self
+
+    def _check_uwb_pairs(self) -> None:
+        """What the UWB network refuses (v2v.sensors.uwb.UwbNetwork), here so that a scenario
+        check needs no sensor module: a radio ranging to itself, and two radio types ranging
+        to each other (two-way ranging needs one type: turnaround and timing)."""
+        uwb = self.sensors.uwb
+        if uwb.pairs != "all":
+            for a, b in uwb.pairs:
+                if a == b:
+                    raise ValueError(f"@sensors.uwb.pairs: pair ({a!r}, {b!r}) ranges a radio to itself -- fix: use two vehicles")
+        if not uwb.vehicle_profiles:
+            return
+        ids = self.vehicle_ids()
+        kind = {v: uwb.vehicle_profiles.get(v, uwb.profile).lower() for v in ids}
+        for a, b in itertools.combinations(ids, 2) if uwb.pairs == "all" else uwb.pairs:  # (as the network pairs them)
+            if kind[a] != kind[b]:
+                raise ValueError(f"@sensors.uwb.pairs: vehicles {a!r} ({kind[a]}) and {b!r} ({kind[b]}) carry radios of "
+                                 "different types -- fix: range only between radios of one type (list the pairs explicitly)")
 
     def vehicle_ids(self) -> list[str]:
         """Cluster vehicle ids, ``<cluster>.<index>`` in departure order."""
