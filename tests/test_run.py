@@ -405,18 +405,22 @@ def test_a_run_that_estimates_has_no_note(short_run):
 def test_a_run_logged_to_a_file_reports_progress(tmp_path, monkeypatch, capsys):
     """With stderr not a terminal (pytest's capture, as a log file or CI) there is no tqdm bar;
     a run reports after its chunks instead (here after every one: 10 s chunks of a 30 s run),
-    simulated time increasing, with the remaining wall time at the pace so far."""
+    simulated time increasing, with the remaining wall time; when the kernels compile in this
+    run (cache_missing, forced here) the first line says its time includes that."""
     import re
 
     import v2v.run as run_mod
+    from v2v.estimation import kernels
 
     monkeypatch.setattr(run_mod, "_PROGRESS_EVERY_S", 0.0)
     sc = load_scenario(None, ["duration_s=30.0", 'solutions=[{name="GPS", sensors=["gnss"]}]'])
-    run_scenario(sc, tmp_path / "r", quiet=False, replay=False, chunk_s=10.0)
-    found = [re.fullmatch(r"default: (\d+) of 30 s simulated, \d+ s wall, ~\d+ s to go", ln)
-             for ln in capsys.readouterr().err.splitlines()]
-    t = [int(m.group(1)) for m in found if m]
-    assert t == [10, 20], t  # (the last chunk ends the run: its summary follows, not a progress line)
+    for compiling in (False, True):
+        monkeypatch.setattr(kernels, "cache_missing", lambda c=compiling: c)
+        run_scenario(sc, tmp_path / f"r{compiling}", quiet=False, replay=False, chunk_s=10.0)
+        found = [re.fullmatch(r"default: (\d+) of 30 s simulated, \d+ s wall( \(this includes compiling the kernels\))?, "
+                              r"~\d+ s to go", ln) for ln in capsys.readouterr().err.splitlines()]
+        t = [(int(m.group(1)), bool(m.group(2))) for m in found if m]
+        assert t == [(10, compiling), (20, False)], t  # (the last chunk ends the run: its summary follows)
 
 
 def test_first_run_on_a_machine_says_the_kernels_compile(tmp_path, monkeypatch, capsys):

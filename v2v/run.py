@@ -136,21 +136,32 @@ _PROGRESS_EVERY_S = 10.0  # wall seconds between progress lines when stderr is n
 class _ProgressLines:
     """Progress of a run whose stderr is not a terminal (a log file, CI, nohup: no tqdm bar
     there), one line after a chunk at most every :data:`_PROGRESS_EVERY_S` wall seconds:
-    simulated time so far, wall time, and the remaining wall time at the pace so far."""
+    simulated time so far, wall time, and the remaining wall time at the pace of the chunks
+    since the first (the first alone until there are more: it may hold the kernels' first
+    compilation, which the line then says)."""
 
-    def __init__(self, quiet: bool, name: str, duration_s: float):
+    def __init__(self, quiet: bool, name: str, duration_s: float, compiling: bool = False):
         self.on = not quiet and not sys.stderr.isatty()
-        self.name, self.duration_s = name, duration_s
+        self.name, self.duration_s, self.compiling = name, duration_s, compiling
         self.t0 = self.last = time.perf_counter()
+        self.first: tuple[float, float] | None = None  # (simulated s, wall s) at the end of the first chunk
 
     def chunk_done(self, t_s: float) -> None:
         now = time.perf_counter()
+        wall = now - self.t0
+        first = self.first
+        if first is None:
+            self.first = (t_s, wall)
         if not self.on or now - self.last < _PROGRESS_EVERY_S or not 0.0 < t_s < self.duration_s - 1e-6:
             return
         self.last = now
-        wall = now - self.t0
-        left = wall * max(self.duration_s - t_s, 0.0) / t_s
-        print(f"{self.name}: {t_s:.0f} of {self.duration_s:.0f} s simulated, {wall:.0f} s wall, ~{left:.0f} s to go",
+        if first is not None and t_s > first[0]:  # the pace since the first chunk
+            pace = (wall - first[1]) / (t_s - first[0])
+        else:
+            pace = wall / t_s
+        left = pace * max(self.duration_s - t_s, 0.0)
+        note = " (this includes compiling the kernels)" if first is None and self.compiling else ""
+        print(f"{self.name}: {t_s:.0f} of {self.duration_s:.0f} s simulated, {wall:.0f} s wall{note}, ~{left:.0f} s to go",
               file=sys.stderr, flush=True)
 
 
@@ -384,7 +395,8 @@ def _run_scenario(scenario: Scenario, out_dir: Path, *, quiet: bool, replay: boo
             _say(quiet or n_filters == 0, f"filtering: {len(scenario.solutions)} solution(s) x {len(scenario.clusters)} cluster(s)")
             from v2v.estimation import kernels
 
-            _say(quiet or n_filters == 0 or not kernels.cache_missing(),
+            compiling = n_filters > 0 and kernels.cache_missing()
+            _say(quiet or not compiling,
                  "compiling the filter's kernels (numba): the first run on this machine takes about a minute longer")
 
             # sensors -------------------------------------------------------------------
@@ -529,7 +541,7 @@ def _run_scenario(scenario: Scenario, out_dir: Path, *, quiet: bool, replay: boo
             add_step(step)
             t_end = step.t_s
             next_cut = step.t_s + chunk
-            lines = _ProgressLines(quiet, scenario.name, scenario.duration_s)
+            lines = _ProgressLines(quiet, scenario.name, scenario.duration_s, compiling)
             with _progress(n_steps, quiet, f"SUMO {scenario.name}") as bar:
                 for _ in range(n_steps):
                     step = sim.step()
