@@ -135,6 +135,10 @@ def test_replay_command_points_at_the_recording(tmp_path):
     cmd = replay_command(tmp_path, web=True, port=9123)
     assert cmd[-1] == str(tmp_path / "replay.rrd")
     assert "--serve-web" in cmd and cmd[cmd.index("--bind") + 1] == "127.0.0.1" and "9123" in cmd
+    for port in (0, 65536, 99999):  # not a TCP port: refused before the viewer starts (rerun's own error is multi-line)
+        with pytest.raises(UserError) as ei:
+            replay_command(tmp_path, web=True, port=port)
+        assert ei.value.field == "--port"
 
 
 def _readme_scenario_block() -> str:

@@ -148,6 +148,8 @@ def replay_command(run_dir: Path, web: bool = False, port: int = 9090) -> list[s
     """The rerun command that opens a run's recording (native viewer, or web viewer on loopback)."""
     import shutil
 
+    if web and not 1 <= port <= 65535:
+        raise UserError(f"port {port} is not a TCP port", field="--port", fix="give a port in 1..65535, e.g. 9090")
     rrd = run_dir if run_dir.suffix == ".rrd" else run_dir / "replay.rrd"
     if not rrd.is_file():
         raise UserError(f"no replay at {rrd}", field="RUN_DIR", fix="give a run folder written without --no-replay")
