@@ -13,6 +13,7 @@ from __future__ import annotations
 import argparse
 import json
 import math
+import os
 import shutil
 import subprocess
 import sys
@@ -376,6 +377,20 @@ def test_value_a_run_would_refuse_stops_the_study_before_any_run(tmp_path, capsy
     line = _one_error_line(capsys, "sensors.uwb.profile")
     assert "unknown UWB radio profile 'decawave'" in line and "run sensors.uwb.profile=decawave" in line
     assert not (tmp_path / "o").exists()
+
+
+@pytest.mark.sumo
+def test_more_workers_than_cores_is_noted(tmp_path, capsys):
+    """--workers above the cores this process may use still runs (a user may mean it), with a
+    note that the runs share the cores; no note when the pending runs need fewer workers."""
+    cores = len(os.sched_getaffinity(0))
+    study = _write(tmp_path / "w.toml", f"seeds = {list(range(1, cores + 2))}\n[set]\nduration_s = 1.0\n"
+                   'solutions = [{name = "GPS", sensors = ["gnss"]}]\n')
+    assert _cli(["sweep", str(study), "--out", str(tmp_path / "o"), "--workers", str(cores + 1)]) == 0
+    err = capsys.readouterr().err
+    assert f"sweep: note: {cores + 1} worker processes on {cores} core(s)" in err
+    assert _cli(["sweep", str(study), "--out", str(tmp_path / "o"), "--workers", str(cores + 1)]) == 0  # nothing pending
+    assert "note:" not in capsys.readouterr().err
 
 
 def test_huge_seed_count_is_refused_before_the_list_is_built(tmp_path, capsys):

@@ -657,6 +657,11 @@ def _run_study_locked(study: Study, out: Path, scheduler: str | None, workers: i
         print(f"sweep: {len(study.runs)} runs ({skipped} already complete, {len(pending)} to run) -> {out}",
               file=sys.stderr, flush=True)
     # connect first: a scheduler that fails the handshake leaves no sweep.json / runs.parquet behind
+    cores = len(os.sched_getaffinity(0)) if hasattr(os, "sched_getaffinity") else (os.cpu_count() or 1)
+    n_local = min(workers or cores, len(pending))  # the local cluster's worker processes (_open_client)
+    if not quiet and not scheduler and n_local > cores:
+        print(f"sweep: note: {n_local} worker processes on {cores} core(s): the runs share the cores (each "
+              "worker is one single-threaded process of a few hundred MB)", file=sys.stderr, flush=True)
     client, cluster = _open_client(scheduler, workers, host, len(pending)) if pending else (None, None)
     try:
         runs_dir.mkdir(parents=True, exist_ok=True)
