@@ -261,3 +261,30 @@ def test_sky_refuses_a_mask_or_height_that_is_not_physical(extra, field, capsys)
     assert main(["sky", "--lat", "51", "--lon", "0", "--time", "2021-04-28T19:00:00Z", *extra]) == 2
     err = [ln for ln in capsys.readouterr().err.splitlines() if ln.strip()]
     assert len(err) == 1 and err[0].startswith(f"v2v: error: {field}: ") and "fix:" in err[0], err
+
+
+@pytest.mark.sumo
+def test_scenario_check_refuses_route_edges_the_net_lacks(capsys):
+    """A misspelt edge in network.route_edges is refused by the check (as SUMO's set-up would
+    refuse it), naming some of the net's edges; edges that exist pass the check (whether they
+    connect is SUMO's to say, in the run)."""
+    hosp = Path(__file__).resolve().parents[1] / "scenarios" / "hospital_loop.toml"
+    assert main(["scenario", "check", str(hosp), "--set", "network.route_edges=['ap_in', 'nope']"]) == 2
+    err = [ln for ln in capsys.readouterr().err.splitlines() if ln.strip()]
+    assert len(err) == 1 and err[0].startswith("v2v: error: network.route_edges: route edge(s) ['nope'] are not in the net")
+    assert "ap_in" in err[0].split("fix:")[1] or "..." in err[0]
+    assert main(["scenario", "check", str(hosp), "--set", "network.route_edges=['ap_in', 'SW-SE']"]) == 0
+
+
+@pytest.mark.sumo
+def test_a_net_without_a_drivable_route_is_refused_before_sumo(tmp_path, capsys):
+    """A net file with no edge passenger cars may use has an empty automatic route: the check
+    refuses it (network.route), as the run's set-up would, instead of saying OK."""
+    net = tmp_path / "empty.net.xml"
+    net.write_text('<?xml version="1.0"?>\n<net version="1.20"><location netOffset="0,0" convBoundary="0,0,10,10" '
+                   'origBoundary="0,0,10,10" projParameter="!"/></net>\n')
+    sc = tmp_path / "sc.toml"
+    sc.write_text(f"duration_s = 2.0\n[network]\nname = \"\"\nnet_file = \"{net}\"\n")
+    assert main(["scenario", "check", str(sc)]) == 2
+    err = [ln for ln in capsys.readouterr().err.splitlines() if ln.strip()]
+    assert len(err) == 1 and err[0].startswith("v2v: error: network.route: ") and "no edges" in err[0], err

@@ -276,6 +276,20 @@ def read_location(net_path: str | os.PathLike) -> NetLocation:
     raise UserError(f"{path} has no <location> element", field="network.net_file", fix="is it a SUMO net?")
 
 
+def edge_ids(net_path: str | os.PathLike) -> set[str]:
+    """The ids of a net's normal (not internal) edges, read with one pass of the XML (what a
+    route may list: ``network.route_edges``); works for ``.gz``."""
+    path = Path(net_path)
+    opener = gzip.open if path.suffix == ".gz" else open
+    ids: set[str] = set()
+    with opener(path, "rb") as f:
+        for _, elem in ET.iterparse(f, events=("end",)):
+            if elem.tag == "edge" and elem.get("function", "normal") != "internal":
+                ids.add(elem.get("id", ""))
+            elem.clear()
+    return ids
+
+
 # --------------------------------------------------------------------------- shipped nets
 
 

@@ -59,6 +59,12 @@ def resolve_network(scenario: Scenario) -> ResolvedNetwork:
     built = nets.resolve_net({"name": cfg.name or None, "net_file": cfg.net_file or None})
     if cfg.route_edges:
         edges = tuple(cfg.route_edges)
+        known = nets.edge_ids(built.net_path)
+        missing = [e for e in edges if e not in known]
+        if missing:  # (what SUMO's set-up refuses too; here before it starts)
+            raise UserError(f"route edge(s) {missing[:3]} are not in the net", field="network.route_edges",
+                            fix=f"use edge ids of this net ({len(known)}: {', '.join(sorted(known)[:6])}"
+                                f"{', ...' if len(known) > 6 else ''})")
     else:
         routes = built.routes or {}
         if cfg.route not in routes:
@@ -68,6 +74,9 @@ def resolve_network(scenario: Scenario) -> ResolvedNetwork:
                 fix="name one of its routes, or list edge ids in network.route_edges",
             )
         edges = tuple(routes[cfg.route])
+        if not edges:  # (a net's automatic route: no edge there allows passenger cars; checked before SUMO starts)
+            raise UserError(f"route {cfg.route!r} of the net has no edges (no edge of it allows passenger cars)",
+                            field="network.route", fix="name a route of the net or set network.route_edges")
     proj, offset, _ = nets.read_location(built.net_path)
     georef = GeoReference(
         proj=proj,

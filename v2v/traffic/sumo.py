@@ -178,10 +178,11 @@ class SumoSimulation:
         known = set(tc.edge.getIDList())
         missing = [e for e in edges if e not in known]
         if missing:
+            normal = sorted(e for e in known if not e.startswith(":"))  # (not the junctions' internal edges)
             raise UserError(
                 f"route edge(s) {missing[:3]} are not in the net",
                 field="network.route_edges",
-                fix="use edge ids of this net (see `v2v nets list`)",
+                fix=f"use edge ids of this net ({len(normal)}: {', '.join(normal[:6])}{', ...' if len(normal) > 6 else ''})",
             )
         try:
             tc.route.add("v2v_route", edges)
