@@ -288,3 +288,14 @@ def test_a_net_without_a_drivable_route_is_refused_before_sumo(tmp_path, capsys)
     assert main(["scenario", "check", str(sc)]) == 2
     err = [ln for ln in capsys.readouterr().err.splitlines() if ln.strip()]
     assert len(err) == 1 and err[0].startswith("v2v: error: network.route: ") and "no edges" in err[0], err
+
+
+@pytest.mark.parametrize("arm", ["[2.0, 0.0, 1.55]", "[-2.0, 1.5, 1.55]", "[-2.0, 0.0, 0.0]", "[-6.0, 0.0, 1.2]"])
+def test_antenna_off_the_vehicle_body_is_refused(arm, capsys):
+    """The lever arm is from the front-bumper centre, x forward: an antenna ahead of the bumper
+    (a sign slip), beside or below the body is refused at load, naming the bounds."""
+    assert main(["scenario", "check", str(Path(__file__).resolve().parents[1] / "scenarios" / "open_highway.toml"),
+                 "--set", f"vehicle_types.passenger.antenna_lever_arm_m={arm}"]) == 2
+    err = [ln for ln in capsys.readouterr().err.splitlines() if ln.strip()]
+    assert len(err) == 1 and err[0].startswith("v2v: error: vehicle_types.passenger.antenna_lever_arm_m: ") \
+        and "-4.8 <= x <= 0" in err[0], err

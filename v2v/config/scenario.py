@@ -60,6 +60,18 @@ class VehicleTypeConfig(_Model):
     driver_imperfection: float = Field(default=0.5, ge=0.0, le=1.0)
     antenna_lever_arm_m: tuple[float, float, float] = (-2.0, 0.0, 1.55)
 
+    @model_validator(mode="after")
+    def _antenna_on_the_vehicle(self) -> VehicleTypeConfig:
+        """The antenna (x forward from the front-bumper centre, y left, z up from the road) must
+        be on the body: -length <= x <= 0, |y| <= width / 2, 0 < z <= height + 0.5 m (a mast)."""
+        x, y, z = self.antenna_lever_arm_m
+        if not (-self.length_m <= x <= 0.0 and abs(y) <= self.width_m / 2 and 0.0 < z <= self.height_m + 0.5):
+            raise ValueError(
+                f"@antenna_lever_arm_m: ({x:g}, {y:g}, {z:g}) m is off the {self.length_m:g} x {self.width_m:g} x "
+                f"{self.height_m:g} m body (x forward from the front-bumper centre, y left, z up from the road) -- fix: "
+                f"give -{self.length_m:g} <= x <= 0, |y| <= {self.width_m / 2:g}, 0 < z <= {self.height_m + 0.5:g}")
+        return self
+
 
 class ClusterConfig(_Model):
     name: str
