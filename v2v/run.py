@@ -146,8 +146,8 @@ class _ProgressLines:
     """Progress of a run whose stderr is not a terminal (a log file, CI, nohup: no tqdm bar
     there), one line after a chunk at most every :data:`_PROGRESS_EVERY_S` wall seconds:
     simulated time so far, wall time, and the remaining wall time at the pace of the chunks
-    since the first (the first alone until there are more: it may hold the kernels' first
-    compilation, which the line then says)."""
+    since the first (the first alone until there are more; a first chunk that held the kernels'
+    compilation gives no estimate, and its line says so)."""
 
     def __init__(self, quiet: bool, name: str, duration_s: float, compiling: bool = False):
         self.on = not quiet and not sys.stderr.isatty()
@@ -168,9 +168,11 @@ class _ProgressLines:
             pace = (wall - first[1]) / (t_s - first[0])
         else:
             pace = wall / t_s
-        left = pace * max(self.duration_s - t_s, 0.0)
-        note = " (this includes compiling the kernels)" if first is None and self.compiling else ""
-        print(f"{self.name}: {t_s:.0f} of {self.duration_s:.0f} s simulated, {wall:.0f} s wall{note}, ~{left:.0f} s to go",
+        if first is None and self.compiling:  # that pace is the compilation's, not the run's
+            to_go = "this includes compiling the kernels; the time to go follows after the next chunk"
+        else:
+            to_go = f"~{pace * max(self.duration_s - t_s, 0.0):.0f} s to go"
+        print(f"{self.name}: {t_s:.0f} of {self.duration_s:.0f} s simulated, {wall:.0f} s wall, {to_go}",
               file=sys.stderr, flush=True)
 
 
