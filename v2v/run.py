@@ -316,7 +316,7 @@ def _run_scenario(scenario: Scenario, out_dir: Path, *, quiet: bool, replay: boo
 
     import v2v.pipeline as pipeline  # run_solution via the module: tools may wrap it (experiments/fault_campaign.py)
     from v2v.exchange import V2VExchange
-    from v2v.faults import check_fault_prns, unreachable_faults
+    from v2v.faults import check_fault_prns
     from v2v.metrics.summary import json_safe, paper_table, solution_statistics
     from v2v.pipeline import (
         STREAM_BEARING,
@@ -655,32 +655,45 @@ def _run_scenario(scenario: Scenario, out_dir: Path, *, quiet: bool, replay: boo
             "filter_membership": membership,
             "filter_counters": filter_counters,  # e.g. clock_jump_detected, divergence_reset, nonfinite_*  # vehicles the lead's filter dropped (silent) and re-added
         }
-        notes = []
-        if t_end + 1e-9 < scenario.duration_s - scenario.step_length_s:
-            notes.append(f"all cluster vehicles reached the end of the route at t = {t_end:.1f} s")
-        never = unreachable_faults(list(scenario.faults), scenario.duration_s)
-        if never:
-            notes.append(f"{len(never)} fault(s) start at or after the run's end (duration_s = {scenario.duration_s:g} s) "
-                         f"and were never injected: {', '.join(never)}")
-        idle = [f"faults.{i} ({f.kind})" for i, f in enumerate(scenario.faults)
-                if f.kind != "message_loss" and f.start_s < scenario.duration_s - 1e-9  # (the exchange drops those)
-                and fault_log is not None and not fault_log.counts.get(f"{i}:{f.kind}")]
-        if idle:
-            notes.append(f"{', '.join(idle)} changed no measurement (its PRNs not in view, its vehicles without such "
-                         "measurements in its window, or its probability drew none)")
-        nothing = _why_nothing_estimated(scenario, sol_stats, summary["gnss"], summary["exchange"])
-        if nothing:
-            notes.append(nothing)
-        ex = summary["exchange"]
-        if ex and ex["late"] > 0.5 * (ex["sent"] - ex["lost"]):
-            notes.append(f"{ex['late']} of the {ex['sent'] - ex['lost']} V2V messages not lost arrived after the filter "
-                         f"had passed their time tag and were dropped (exchange.latency_s = {scenario.exchange.latency_s:g} s "
-                         f"> exchange.filter_lag_s = {scenario.exchange.lag_s:g} s)")
-        if notes:
-            summary["note"] = "; ".join(notes)
+        note = _run_note(scenario, t_end, fault_log, sol_stats, summary["gnss"], summary["exchange"])
+        if note:
+            summary["note"] = note
         summary["table"] = paper_table(sol_stats) if sol_stats else ""
         atomic_write_json(tmp / "summary.json", json_safe(summary))
     return RunResult(out_dir=Path(out_dir), summary=summary)
+
+
+def _run_note(scenario: Scenario, t_end: float, fault_log: Any, sol_stats: dict[str, Any], gnss: dict[str, Any],
+              exchange: dict[str, int]) -> str:
+    """summary.json's ``note`` ("" if none), what a user should know about a run that completed:
+    it ended early (every cluster vehicle at the end of its route), a fault could not act (it
+    starts after the run's end, or changed no measurement), no solution estimated any vehicle
+    (:func:`_why_nothing_estimated`), most V2V messages arrived after the filter had passed
+    their time tag."""
+    from v2v.faults import unreachable_faults
+
+    notes = []
+    if t_end + 1e-9 < scenario.duration_s - scenario.step_length_s:
+        notes.append(f"all cluster vehicles reached the end of the route at t = {t_end:.1f} s")
+    never = unreachable_faults(list(scenario.faults), scenario.duration_s)
+    if never:
+        notes.append(f"{len(never)} fault(s) start at or after the run's end (duration_s = {scenario.duration_s:g} s) "
+                     f"and were never injected: {', '.join(never)}")
+    idle = [f"faults.{i} ({f.kind})" for i, f in enumerate(scenario.faults)
+            if f.kind != "message_loss"  # (dropped by the exchange, not counted in the fault log)
+            and f.start_s < scenario.duration_s - 1e-9 and fault_log is not None
+            and not fault_log.counts.get(f"{i}:{f.kind}")]
+    if idle:
+        notes.append(f"{', '.join(idle)} changed no measurement (its PRNs not in view, its vehicles without such "
+                     "measurements in its window, or its probability drew none)")
+    nothing = _why_nothing_estimated(scenario, sol_stats, gnss, exchange)
+    if nothing:
+        notes.append(nothing)
+    if exchange and exchange["late"] > 0.5 * (exchange["sent"] - exchange["lost"]):
+        notes.append(f"{exchange['late']} of the {exchange['sent'] - exchange['lost']} V2V messages not lost arrived after "
+                     f"the filter had passed their time tag and were dropped (exchange.latency_s = "
+                     f"{scenario.exchange.latency_s:g} s > exchange.filter_lag_s = {scenario.exchange.lag_s:g} s)")
+    return "; ".join(notes)
 
 
 def _why_nothing_estimated(scenario: Scenario, sol_stats: dict[str, Any], gnss: dict[str, Any],
