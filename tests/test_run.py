@@ -398,6 +398,16 @@ def test_messages_the_filter_has_passed_are_noted(tmp_path):
     assert f"{ex['late']} of the {ex['sent'] - ex['lost']} V2V messages not lost arrived after" in res.summary["note"]
 
 
+def test_a_solution_whose_sensor_measured_nothing_is_noted(tmp_path):
+    """No vehicle measures bearings (sensors.bearing.measuring = []): the bearing solution runs
+    on GNSS alone, and the note says it had no bearings to use."""
+    sc = load_scenario(None, ["duration_s=2.0", 'solutions=[{name="GPS+B", sensors=["gnss","bearing"]}]',
+                              "sensors.bearing.measuring=[]"])
+    res = run_scenario(sc, tmp_path / "r", quiet=True, replay=False)
+    assert res.summary["bearing"]["measurements"] == 0
+    assert "the run measured no bearings" in res.summary["note"] and "GPS+B had none to use" in res.summary["note"]
+
+
 def test_a_run_that_estimates_has_no_note(short_run):
     assert "note" not in short_run[1]
 

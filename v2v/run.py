@@ -655,7 +655,8 @@ def _run_scenario(scenario: Scenario, out_dir: Path, *, quiet: bool, replay: boo
             "filter_membership": membership,
             "filter_counters": filter_counters,  # e.g. clock_jump_detected, divergence_reset, nonfinite_*  # vehicles the lead's filter dropped (silent) and re-added
         }
-        note = _run_note(scenario, t_end, fault_log, sol_stats, summary["gnss"], summary["exchange"])
+        note = _run_note(scenario, t_end, fault_log, sol_stats, summary["gnss"], summary["exchange"], summary["uwb"],
+                         summary["bearing"])
         if note:
             summary["note"] = note
         summary["table"] = paper_table(sol_stats) if sol_stats else ""
@@ -664,12 +665,12 @@ def _run_scenario(scenario: Scenario, out_dir: Path, *, quiet: bool, replay: boo
 
 
 def _run_note(scenario: Scenario, t_end: float, fault_log: Any, sol_stats: dict[str, Any], gnss: dict[str, Any],
-              exchange: dict[str, int]) -> str:
+              exchange: dict[str, int], uwb: dict[str, Any], bearing: dict[str, Any]) -> str:
     """summary.json's ``note`` ("" if none), what a user should know about a run that completed:
     it ended early (every cluster vehicle at the end of its route), a fault could not act (it
     starts after the run's end, or changed no measurement), no solution estimated any vehicle
-    (:func:`_why_nothing_estimated`), most V2V messages arrived after the filter had passed
-    their time tag."""
+    (:func:`_why_nothing_estimated`), a solution's UWB or bearing sensor measured nothing, most
+    V2V messages arrived after the filter had passed their time tag."""
     from v2v.faults import unreachable_faults
 
     notes = []
@@ -689,6 +690,13 @@ def _run_note(scenario: Scenario, t_end: float, fault_log: Any, sol_stats: dict[
     nothing = _why_nothing_estimated(scenario, sol_stats, gnss, exchange)
     if nothing:
         notes.append(nothing)
+    used = {s for sol in scenario.solutions for s in sol.sensors}
+    for sensor, n, why in (("uwb", uwb.get("ranges", 0), "every pair out of range, blocked or lost"),
+                           ("bearing", bearing.get("measurements", 0), "sensors.bearing.measuring, field of view, range")):
+        if sensor in used and not n:
+            sols = [sol.name for sol in scenario.solutions if sensor in sol.sensors]
+            notes.append(f"the run measured no {'UWB ranges' if sensor == 'uwb' else 'bearings'} ({why}): "
+                         f"{', '.join(sols)} had none to use")
     if exchange and exchange["late"] > 0.5 * (exchange["sent"] - exchange["lost"]):
         notes.append(f"{exchange['late']} of the {exchange['sent'] - exchange['lost']} V2V messages not lost arrived after "
                      f"the filter had passed their time tag and were dropped (exchange.latency_s = "
