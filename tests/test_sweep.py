@@ -14,6 +14,7 @@ import argparse
 import json
 import math
 import os
+import re
 import shutil
 import subprocess
 import sys
@@ -450,3 +451,18 @@ def test_sweep_whose_runs_fail_exits_1_naming_the_first_error(tmp_path, capsys):
     line = _one_error_line(capsys, "network.route_edges")
     assert "1 of 1 runs failed" in line
     assert pd.read_parquet(tmp_path / "o" / "runs.parquet")["status"].tolist() == ["failed"]
+
+
+@pytest.mark.sumo
+def test_a_sweep_logged_to_a_file_reports_progress(tmp_path, monkeypatch, capsys):
+    """With stderr not a terminal (no tqdm bar) a sweep prints progress lines: runs done of
+    those to run, failures, elapsed and remaining time (here after every run but the last)."""
+    import v2v.sweep as sweep_mod
+
+    monkeypatch.setattr(sweep_mod, "PROGRESS_EVERY_S", 0.0)
+    study = _write(tmp_path / "p.toml", 'seeds = [1, 2, 3]\n[set]\nduration_s = 1.0\n'
+                   'solutions = [{name = "GPS", sensors = ["gnss"]}]\n')
+    assert _cli(["sweep", str(study), "--out", str(tmp_path / "o"), "--workers", "1"]) == 0
+    got = [re.fullmatch(r"sweep: (\d) of 3 runs \(0 failed\), \d+ s, ~\d+ s to go", ln)
+           for ln in capsys.readouterr().err.splitlines()]
+    assert [int(m.group(1)) for m in got if m] == [1, 2]

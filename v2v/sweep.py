@@ -69,6 +69,7 @@ STUDY_KEYS = ("base", "seeds", "replay", "save_measurements", "set", "grid")
 META_COLUMNS = ("run_id", "seed", "status", "error", "note", "wall_s")
 RUNS_FILE = "runs.parquet"
 SWEEP_FILE = "sweep.json"
+PROGRESS_EVERY_S = 30.0  # wall seconds between progress lines when stderr is not a terminal
 MAX_SEED = 2**31 - 1
 # summary.json entries that are not per-run results (or not numbers worth a column)
 _SUMMARY_SKIP = frozenset({
@@ -685,6 +686,9 @@ def _run_study_locked(study: Study, out: Path, scheduler: str | None, workers: i
                                base_dir=str(study.base_dir) if study.base_dir else None)
                 futures.append(client.submit(execute_run, task, key=f"v2v-run-{spec.run_id}", pure=False))
             next_flush = time.monotonic() + flush_every_s
+            lines = not quiet and not sys.stderr.isatty()  # (no tqdm bar there: a log, CI, nohup)
+            t_start = next_line = time.monotonic()
+            done = 0
             with tqdm(total=len(pending), unit="run", desc="sweep", disable=True if quiet else None,
                       file=sys.stderr) as bar:
                 for fut in as_completed(futures, loop=client.loop):
@@ -701,6 +705,12 @@ def _run_study_locked(study: Study, out: Path, scheduler: str | None, workers: i
                                              res.get("note", ""))
                     bar.update(1)
                     bar.set_postfix(failed=failed)
+                    done += 1
+                    if lines and time.monotonic() >= next_line and done < len(pending):
+                        el = time.monotonic() - t_start
+                        next_line = time.monotonic() + PROGRESS_EVERY_S
+                        print(f"sweep: {done} of {len(pending)} runs ({failed} failed), {el:.0f} s, "
+                              f"~{el / done * (len(pending) - done):.0f} s to go", file=sys.stderr, flush=True)
                     if time.monotonic() >= next_flush:
                         t_w = time.monotonic()
                         _write_runs(out, study, rows)
