@@ -30,8 +30,10 @@ from v2v.viz.rerun_logger import (  # noqa: E402
     SOLUTION_RGB,
     RerunReplayLogger,
     RerunReplayParams,
+    blueprint_chunks,
     ellipse_scale,
     extrude_footprints,
+    send_blueprint_chunks,
     strips3d_arrow,
 )
 
@@ -383,6 +385,56 @@ def test_blueprint_is_stored_with_the_views(run):
     assert set(selections) == expected
 
 
+def _blueprint_content(path) -> list[tuple]:
+    """The blueprint store of ``path``: (entity, static, columns) of every chunk, sorted; the
+    wall-clock ``log_time`` stamps and row ids left out."""
+    reader = RrdReader(path)
+    (store,) = reader.blueprints()
+    out = []
+    for c in reader.stream(store=store):
+        rb = c.to_record_batch()
+        cols = {n: rb.column(n).to_pylist() for n in rb.schema.names if n != "log_time" and "RowId" not in n}
+        out.append((c.entity_path, c.is_static, repr(sorted(cols.items()))))
+    return sorted(out)
+
+
+def test_blueprint_chunks_are_what_send_blueprint_stores(tmp_path):
+    """The cached blueprint chunks, sent to two recordings in turn (the second reuses the
+    cache), store what ``RecordingStream.send_blueprint`` of the same blueprint stores (the
+    log_time stamps aside), made active and default (rerun's own ``rrd print`` of the file)."""
+    import shutil
+    import subprocess
+    import sys
+
+    args = ("v2v", ("gps", "gps+uwb"), ("veh.1", "veh_2"), ("lead", "veh.1"), True)
+    blueprint_chunks.cache_clear()
+
+    def write(path, send):
+        rec = rr.RecordingStream(application_id="v2v", recording_id="bp", send_properties=False)
+        rec.save(path)
+        send(rec)
+        rec.flush()
+        rec.disconnect()
+
+    write(tmp_path / "ref.rrd", lambda rec: rec.send_blueprint(bp.default_blueprint(*args[1:4], show_map=True),
+                                                               make_active=True, make_default=True))
+    for name in ("a.rrd", "b.rrd"):
+        write(tmp_path / name, lambda rec: send_blueprint_chunks(rec, "v2v", blueprint_chunks(*args)))
+    assert blueprint_chunks.cache_info().hits == 1
+    ref = _blueprint_content(tmp_path / "ref.rrd")
+    assert len(ref) > 20
+    assert _blueprint_content(tmp_path / "a.rrd") == ref
+    assert _blueprint_content(tmp_path / "b.rrd") == ref
+    exe = shutil.which("rerun", path=os.path.dirname(sys.executable))
+    if exe is None:
+        pytest.skip("no rerun executable beside the interpreter to print the activation command")
+    for name in ("ref.rrd", "b.rrd"):
+        out = subprocess.run([exe, "rrd", "print", str(tmp_path / name)], capture_output=True, text=True,
+                             timeout=60).stdout
+        lines = [ln for ln in out.splitlines() if ln.startswith("BlueprintActivationCommand")]
+        assert len(lines) == 1 and "make_active: true, make_default: true" in lines[0], (name, lines)
+
+
 def test_each_error_series_is_styled_on_its_entity_and_shown_in_one_view(run):
     """The blueprint has no per-view overrides: an error series' look is the style logged
     static on its entity. That equals a per-view style only if no series is in two views,
@@ -503,7 +555,8 @@ class _Recorder(ReplayLogger):
         self.calls.append(("truth", t_s, step))
 
     def log_estimates(self, t_s, solution, vehicle_ids, est_xy_m, cov_en_m2):
-        pass
+        self.calls.append(("estimates", t_s, solution, list(vehicle_ids), np.asarray(est_xy_m).tolist(),
+                           np.asarray(cov_en_m2).tolist()))
 
     def log_links(self, t_s, kind, a_xyz_m, b_xyz_m, status):
         self.calls.append(("links", t_s, kind, np.asarray(a_xyz_m).tolist(), np.asarray(b_xyz_m).tolist(), list(status)))
@@ -578,15 +631,27 @@ def _write(path, steps, batched: bool) -> dict[str, list]:
             for t, v, prn, az, el, los in sky:
                 lg.log_satellites(t, v, prn, az, el, los)
         cov = np.array([[[0.04, 0.01], [0.01, 0.09]], [[np.nan, 0.0], [0.0, 1.0]], [[0.25, -0.02], [-0.02, 0.01]]])
+        epochs = {s: [] for s in SOLUTIONS}  # solution -> (t, ids, xy, cov, error rows) of its epochs
         for k, st in enumerate(steps):
             n_est = k % 4  # 0 to 3 estimates; the second has no finite covariance (no ellipse)
+            ids = [f"v{i}" for i in range(n_est)][::-1 if k == 7 else 1]  # one epoch in another order
             xy = [[10.0 + k + i, -1.0 * i] for i in range(n_est)]
-            lg.log_estimates(st.t_s, SOLUTIONS[k % 2], [f"v{i}" for i in range(n_est)], xy, cov[:n_est])
+            epochs[SOLUTIONS[k % 2]].append((st.t_s, ids, xy, cov[:n_est], [_error_row(k, k % 2, i) for i in range(n_est)]))
             if batched:
-                lg.log_errors_many(st.t_s, SOLUTIONS[1], VEHICLES[1:], [_error_row(k, 1, v) for v in range(2)])
+                lg.log_errors_many(st.t_s, "gps only", VEHICLES[1:], [_error_row(k, 2, v) for v in range(2)])
             else:
                 for v in range(2):
-                    lg.log_errors(st.t_s, SOLUTIONS[1], VEHICLES[1 + v], *_error_row(k, 1, v))
+                    lg.log_errors(st.t_s, "gps only", VEHICLES[1 + v], *_error_row(k, 2, v))
+        for s, eps in epochs.items():
+            if batched:
+                lg.log_epochs([e[0] for e in eps], s, [len(e[1]) for e in eps], [v for e in eps for v in e[1]],
+                              np.concatenate([np.reshape(e[2], (-1, 2)) for e in eps]), np.concatenate([e[3] for e in eps]),
+                              np.concatenate([np.reshape(e[4], (-1, 8)) for e in eps]))
+            else:
+                for t, ids, xy, c, rows in eps:
+                    lg.log_estimates(t, s, ids, xy, c)
+                    for v, row in zip(ids, rows, strict=True):
+                        lg.log_errors(t, s, v, *row)
     return _read(path)
 
 
@@ -606,9 +671,10 @@ def _rows_by_entity(chunks):
 
 
 def test_batched_calls_store_the_same_rows_as_per_step_calls(tmp_path):
-    """log_truth_many / log_links_many / log_satellites_many / log_errors_many and the deferred ellipses give
-    the same entities, components, time stamps and values (exactly) as one call per step
-    sent at once: empty steps, steps without links, estimates without a finite covariance."""
+    """log_truth_many / log_links_many / log_satellites_many / log_errors_many / log_epochs and the
+    deferred ellipses give the same entities, components, time stamps and values (exactly) as
+    one call per step sent at once: empty steps, steps without links, epochs without estimates
+    or with vehicles in another order, estimates without a finite covariance."""
     steps = _steps()
     per_step = _rows_by_entity(_write(tmp_path / "a.rrd", steps, batched=False))
     batched = _rows_by_entity(_write(tmp_path / "b.rrd", steps, batched=True))
@@ -635,7 +701,9 @@ def test_error_rows_of_the_wrong_shape_are_refused(tmp_path):
     row = [0.0] * 8
     lg.log_errors_many(0.0, "gps", ["a"], [row])
     row[0] = 5.0  # the row was copied when logged
-    assert lg._errors[("gps", "a")].rows == [[0.0] * 8]
+    assert np.concatenate(lg._errors[("gps", "a")].rows).tolist() == [[0.0] * 8]
+    with pytest.raises(ValueError, match="2 times and 2 counts .adding up to 3. for 2 vehicle ids"):
+        lg.log_epochs([0.1, 0.2], "gps", [1, 2], ["a", "b"], np.zeros((2, 2)), np.zeros((2, 2, 2)), np.zeros((2, 8)))
     lg.abort()
     assert not list(tmp_path.iterdir())
 
@@ -658,6 +726,17 @@ def test_default_batch_methods_make_the_per_step_calls():
         ("sky", 0.0, "b", [4, 5], [0.2, 0.3], [0.6, 0.7], [False, True]),
         ("errors", 0.3, "gps", "a", 1.0, 2.0, 3.0, 4.0, 5.0, 6.0, 7, 8),
         ("errors", 0.3, "gps", "b", 0, 1, 2, 3, 4, 5, 6, 7),
+    ]
+    lg.calls.clear()
+    cov = np.arange(12.0).reshape(3, 2, 2)
+    lg.log_epochs([0.4, 0.5, 0.6], "gps", [2, 0, 1], ["a", "b", "a"], [[1.0, 2.0], [3.0, 4.0], [5.0, 6.0]], cov,
+                  np.arange(24.0).reshape(3, 8))
+    assert lg.calls == [
+        ("errors", 0.4, "gps", "a", *range(8)), ("errors", 0.4, "gps", "b", *range(8, 16)),
+        ("estimates", 0.4, "gps", ["a", "b"], [[1.0, 2.0], [3.0, 4.0]], cov[:2].tolist()),
+        ("estimates", 0.5, "gps", [], [], []),
+        ("errors", 0.6, "gps", "a", *range(16, 24)),
+        ("estimates", 0.6, "gps", ["a"], [[5.0, 6.0]], cov[2:].tolist()),
     ]
 
 

@@ -76,17 +76,18 @@ def _slowed(monkeypatch, owner, name: str, seconds: float) -> list[int]:
 
 
 def test_estimates_logging_is_timed_as_replay_not_estimation(tmp_path, monkeypatch):
-    """The per-epoch replay logging runs inside the filter loop but is timed into the replay
-    stage: with every log_errors_many call slowed by 20 ms, the replay stage holds at least
-    calls x 20 ms, and estimation grows by well under that against the same run without replay."""
+    """The replay logging of each chunk's estimates runs inside the filter loop but is timed
+    into the replay stage: with every log_epochs call (one per solution and chunk) slowed by
+    50 ms, the replay stage holds at least calls x 50 ms, and estimation grows by well under
+    that against the same run without replay."""
     from v2v.viz.rerun_logger import RerunReplayLogger
 
-    calls = _slowed(monkeypatch, RerunReplayLogger, "log_errors_many", 0.02)
+    calls = _slowed(monkeypatch, RerunReplayLogger, "log_epochs", 0.05)
     sc = load_scenario(None, ["duration_s=3.0", 'solutions=[{name="GPS", sensors=["gnss"]}]'])
-    on = run_scenario(sc, tmp_path / "on", quiet=True, replay=True).summary["timing_s"]
-    off = run_scenario(sc, tmp_path / "off", quiet=True, replay=False).summary["timing_s"]
-    slept = 0.02 * len(calls)
-    assert len(calls) >= 25  # one per output epoch (10 Hz, 3 s)
+    on = run_scenario(sc, tmp_path / "on", quiet=True, replay=True, chunk_s=0.5).summary["timing_s"]
+    off = run_scenario(sc, tmp_path / "off", quiet=True, replay=False, chunk_s=0.5).summary["timing_s"]
+    slept = 0.05 * len(calls)
+    assert len(calls) >= 4  # one per chunk with estimates (0.5 s chunks of a 3 s run)
     assert on["replay"] >= slept
     assert on["estimation"] - off["estimation"] < 0.5 * slept
 

@@ -29,7 +29,7 @@ import time
 from collections.abc import Iterator
 from dataclasses import dataclass
 from pathlib import Path
-from typing import Any
+from typing import TYPE_CHECKING, Any
 
 import numpy as np
 
@@ -41,6 +41,9 @@ from v2v.io.atomic import RunFolder, atomic_write_json, atomic_write_parquet
 from v2v.io.tables import ParquetStream
 from v2v.sensors.measurements import GnssEpoch
 from v2v.traffic.snapshot import EventKind, TrafficStep
+
+if TYPE_CHECKING:
+    import pandas as pd
 
 
 @dataclass(frozen=True, kw_only=True)
@@ -374,7 +377,7 @@ def _run_scenario(scenario: Scenario, out_dir: Path, *, quiet: bool, replay: boo
         truth = ParquetStream(tmp / "truth.parquet", batch_rows=10_000)  # also flushed at every chunk
         files = NetFiles(net_path=net.net_path, poly_paths=net.poly_paths, route_edges=net.route_edges)
         logger = _make_logger(tmp, replay)
-        on_epoch = _epoch_logger(logger, net.georef, timing) if replay else None
+        log_epochs = _epoch_logger(logger, net.georef, timing) if replay else None
         acc = _RunAccumulators()
         fault_log = None
         frng = None
@@ -449,7 +452,7 @@ def _run_scenario(scenario: Scenario, out_dir: Path, *, quiet: bool, replay: boo
                 runners, keys, parts = [], [], []
                 for si, sol in enumerate(scenario.solutions):
                     ekf = build_filter(sol, lead, others, bearing_vehicles, uwb_pairs, antenna_heights)
-                    runners.append(SolutionRunner(sol, ekf, lead, others, on_epoch=on_epoch))
+                    runners.append(SolutionRunner(sol, ekf, lead, others))
                     keys.append(sol.name if len(scenario.clusters) == 1 else f"{cluster.name}/{sol.name}")
                     parts.append(parts_dir / f"epochs_{ci}_{si}.pkl")
                 clusters.append(_ClusterRun(name=cluster.name, lead=lead, members=members,
@@ -507,7 +510,7 @@ def _run_scenario(scenario: Scenario, out_dir: Path, *, quiet: bool, replay: boo
                 replay_state.add(logger, steps, uwb, bearings, epochs)
                 replay_state.flush(logger, np.inf if final else known)
                 timing["replay_static_truth"] += time.perf_counter() - t0
-                # exchange and filters (less the estimates' logging: on_epoch adds it to replay)
+                # exchange and filters (less the estimates' logging: log_epochs adds it to replay)
                 t0 = time.perf_counter()
                 replay_before = timing["replay"]
                 for cl in clusters:
@@ -527,12 +530,15 @@ def _run_scenario(scenario: Scenario, out_dir: Path, *, quiet: bool, replay: boo
                     consumed = 0
                     for runner, part in zip(cl.runners, cl.parts, strict=True):
                         rec = pipeline.run_solution(runner.sol, runner.ekf, cl.events, times, truth_at, cl.lead,
-                                                    runner.vehicles, on_epoch=on_epoch, runner=runner)
+                                                    runner.vehicles, runner=runner)
                         consumed = runner.consumed
                         rows = rec.take_rows()
                         if rows:
+                            frame = pd.DataFrame(rows)
+                            if log_epochs is not None:
+                                log_epochs(runner.sol.name, cl.lead, frame, truth_at)
                             with open(part, "ab") as f:
-                                pickle.dump(pd.DataFrame(rows), f, protocol=pickle.HIGHEST_PROTOCOL)
+                                pickle.dump(frame, f, protocol=pickle.HIGHEST_PROTOCOL)
                     del cl.events[:consumed]
                     del cl.out_times[:ready]
                 timing["estimation"] += time.perf_counter() - t0 - (timing["replay"] - replay_before)
@@ -937,41 +943,42 @@ def _log_truth_and_links(logger, steps, uwb, bearings, sky_every: dict[int, Any]
 
 
 def _epoch_logger(logger, georef: GeoReference, timing: dict[str, float]):
-    """Callback logging each solution's estimates (net XY, around the lead's true antenna) and
-    errors; its time is added to ``timing["replay"]``."""
-    from operator import itemgetter
-
+    """Callback logging a chunk of one solution's epoch rows (the frame of ``take_rows``) to the
+    replay: each epoch's estimates of the initialized vehicles (net XY, around the lead's true
+    antenna at that epoch, ``truth_at``) and their errors, in one :meth:`log_epochs` call; its
+    time is added to ``timing["replay"]``."""
     cache: dict[str, tuple[float, float]] = {}  # cos, sin of the grid convergence at the first lead position
-    fields = itemgetter("vehicle", "est_e_m", "est_n_m", "cov_ee_m2", "cov_en_m2", "cov_nn_m2", "along_err_m",
-                        "across_err_m", "sigma_along_m", "sigma_across_m", "nees_pos", "used_pr", "rejected_pr",
-                        "rejected_uwb", "rejected_bearing", "rejected_doppler")
-    nan = float("nan")
+    error_columns = ("along_err_m", "across_err_m", "sigma_along_m", "sigma_across_m", "nees_pos")
+    rejected = ("rejected_pr", "rejected_uwb", "rejected_bearing", "rejected_doppler")
 
-    def on_epoch(t_s: float, solution: str, ekf, step: TrafficStep, rows: list[dict[str, Any]]) -> None:
+    def log_epochs(solution: str, lead: str, frame: pd.DataFrame, truth_at) -> None:
         t0 = time.perf_counter()
         try:
-            log_epoch(t_s, solution, ekf, step, rows)
+            log_frame(solution, lead, frame, truth_at)
         finally:
             timing["replay"] += time.perf_counter() - t0
 
-    def log_epoch(t_s: float, solution: str, ekf, step: TrafficStep, rows: list[dict[str, Any]]) -> None:
-        lst = step.vehicles[ekf.layout.lead]
-        if not cache:
-            g = georef.grid_convergence_rad(float(lst.xyz_m[0]), float(lst.xyz_m[1]))
+    def log_frame(solution: str, lead: str, frame: pd.DataFrame, truth_at) -> None:
+        if not cache and len(frame):  # the first epoch logged, initialized vehicles or not
+            x0, y0 = truth_at(float(frame["t_s"].iat[0])).vehicles[lead].xyz_m[:2]
+            g = georef.grid_convergence_rad(float(x0), float(y0))
             cache["cos_sin"] = (np.cos(g), np.sin(g))
+        rows = frame[frame["initialized"].to_numpy(dtype=bool)]
+        if rows.empty:
+            return
+        t = rows["t_s"].to_numpy(dtype=float)
+        starts = np.flatnonzero(np.concatenate([[True], t[1:] != t[:-1]]))  # epochs (rows in time order)
+        counts = np.diff(np.append(starts, len(t)))
+        lead_xy = np.array([truth_at(float(te)).vehicles[lead].xyz_m[:2] for te in t[starts]], dtype=float)
         c, s = cache["cos_sin"]
-        x0, y0 = lst.xyz_m[0], lst.xyz_m[1]
-        ids, xy, cov, errors = [], [], [], []
-        for r in rows:
-            if not r["initialized"]:
-                continue
-            v, e, n, cee, cen, cnn, along, across, s_along, s_across, nees, used, rej_pr, rej_uwb, rej_b, rej_d = fields(r)
-            ids.append(v)
-            xy.append([x0 + e * c - n * s, y0 + e * s + n * c])
-            cov.append([[cee, cen], [cen, cnn]])
-            errors.append((along, across, s_along, s_across, nees, nan, int(used), int(rej_pr + rej_uwb + rej_b + rej_d)))
-        if ids:
-            logger.log_errors_many(t_s, solution, ids, errors)
-            logger.log_estimates(t_s, solution, ids, xy, cov)
+        x0, y0 = np.repeat(lead_xy, counts, axis=0).T
+        e, n = rows["est_e_m"].to_numpy(dtype=float), rows["est_n_m"].to_numpy(dtype=float)
+        xy = np.column_stack([x0 + e * c - n * s, y0 + e * s + n * c])
+        cee, cen, cnn = (rows[k].to_numpy(dtype=float) for k in ("cov_ee_m2", "cov_en_m2", "cov_nn_m2"))
+        cov = np.stack([cee, cen, cen, cnn], axis=1).reshape(-1, 2, 2)
+        errors = np.column_stack([*(rows[k].to_numpy(dtype=float) for k in error_columns), np.full(len(t), np.nan),
+                                  rows["used_pr"].to_numpy(dtype=float),
+                                  sum(rows[k].to_numpy(dtype=float) for k in rejected)])
+        logger.log_epochs(t[starts], solution, counts, rows["vehicle"].tolist(), xy, cov, errors)
 
-    return on_epoch
+    return log_epochs

@@ -22,10 +22,11 @@ and aborts when the block raises, so a failed run never leaves a replay that loo
         for step in steps:
             replay.log_truth(step.t_s, step)
 
-Many rows at once: ``log_truth_many``, ``log_links_many`` and ``log_satellites_many``
-log the rows of many steps in one call (what the per-step calls would log, in order);
-the defaults here loop over the per-step methods, an implementation overrides them to
-vectorize (``v2v.run`` logs each 30 s chunk's truth, links and sky plots this way).
+Many rows at once: ``log_truth_many``, ``log_links_many``, ``log_satellites_many`` and
+``log_epochs`` log the rows of many steps or epochs in one call (what the per-step calls
+would log, in order); the defaults here loop over the per-step methods, an implementation
+overrides them to vectorize (``v2v.run`` logs each 30 s chunk's truth, links and sky plots,
+and each solution's estimates and errors of the chunk, this way).
 
 The entity layout of the recording is documented in :mod:`v2v.viz.blueprint`.
 """
@@ -186,6 +187,35 @@ class ReplayLogger(ABC):
             along, across, s_along, s_across, nees, nis, n_sats, rejections = row
             self.log_errors(t_s, solution, v, along, across, s_along, s_across, nees, nis, int(n_sats), int(rejections))
 
+    def log_epochs(
+        self,
+        t_s: ArrayLike,
+        solution: str,
+        counts: ArrayLike,
+        vehicle_ids: Sequence[str],
+        est_xy_m: ArrayLike,
+        cov_en_m2: ArrayLike,
+        errors: ArrayLike,
+    ) -> None:
+        """Several epochs of one solution: at each time ``t_s[k]``, :meth:`log_errors_many`
+        and :meth:`log_estimates` of its ``counts[k]`` vehicles. ``vehicle_ids``, ``est_xy_m``
+        ``(sum(counts), 2)``, ``cov_en_m2`` ``(sum(counts), 2, 2)`` and ``errors``
+        ``(sum(counts), 8)`` (:meth:`log_errors`' order) hold the epochs' rows one after
+        another."""
+        xy = np.asarray(est_xy_m, dtype=float).reshape(-1, 2)
+        cov = np.asarray(cov_en_m2, dtype=float).reshape(-1, 2, 2)
+        err = np.asarray(errors, dtype=float).reshape(-1, 8)
+        ids = list(vehicle_ids)
+        if not (len(xy) == len(cov) == len(err) == len(ids)):
+            raise ValueError(f"log_epochs: {len(ids)} vehicle ids, {len(xy)} positions, {len(cov)} covariances, "
+                             f"{len(err)} error rows")
+        lo = 0
+        for t, m in zip(np.asarray(t_s, dtype=float).reshape(-1).tolist(),
+                        np.asarray(counts, dtype=int).reshape(-1).tolist(), strict=True):
+            self.log_errors_many(t, solution, ids[lo : lo + m], err[lo : lo + m].tolist())
+            self.log_estimates(t, solution, ids[lo : lo + m], xy[lo : lo + m], cov[lo : lo + m])
+            lo += m
+
     @abstractmethod
     def close(self) -> None:
         """Flush everything and publish the recording (atomically). Idempotent."""
@@ -247,6 +277,9 @@ class NullLogger(ReplayLogger):
         pass
 
     def log_errors_many(self, t_s, solution, vehicle_ids, rows) -> None:
+        pass
+
+    def log_epochs(self, t_s, solution, counts, vehicle_ids, est_xy_m, cov_en_m2, errors) -> None:
         pass
 
     def close(self) -> None:

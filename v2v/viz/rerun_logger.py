@@ -8,8 +8,9 @@ How it writes
 * A private ``rr.RecordingStream(application_id="v2v")`` (never the global one), saved
   with ``RecordingStream.save`` to a hidden temporary file beside the target; no viewer is
   spawned and nothing touches the network. :meth:`RerunReplayLogger.close` flushes, sends
-  the default blueprint (built from the solutions and vehicles actually logged), closes
-  the file and renames it to the target with ``os.replace``; on any error, or on
+  the default blueprint (built from the solutions and vehicles actually logged, active and
+  default; its chunks made once per process and arguments, :func:`blueprint_chunks`),
+  closes the file and renames it to the target with ``os.replace``; on any error, or on
   :meth:`~RerunReplayLogger.abort`, the temporary file is removed and the target is not
   touched.
 * Static geometry is logged once with ``static=True``.
@@ -22,16 +23,17 @@ How it writes
   ``log`` per call cost ~0.4 ms (most of the replay's overhead); the recording's content
   is the same: same entity paths, components, values and ``sim_time`` stamps.
 * Work is batched, not done per call: the ``*_many`` methods (``log_truth_many``,
-  ``log_links_many``, ``log_satellites_many``) turn many steps into rows with one
-  vectorized pass per entity, and the single-step methods are the same code with one
-  row; ``log_estimates`` only checks and copies its arguments, the points and
+  ``log_links_many``, ``log_satellites_many``) and ``log_epochs`` (a solution's estimates
+  and errors of many epochs) turn many steps into rows with one vectorized pass per
+  entity, and the single-step methods are the same code with one row; ``log_estimates``
+  only checks and copies its arguments, the points and
   uncertainty ellipses of all waiting calls are computed together when the scene is sent
   (one batched ``eigh``: the same per-matrix LAPACK call, so the same values). What a
   sweep's runs share is built once and cached: the static scene by its geometry
   (:func:`static_world`: lane triangulation, extruded buildings), the sky-plot grid and
   the default blueprint.
-* Error time series are buffered per (solution, vehicle) as rows of the eight series and
-  sent with ``RecordingStream.send_columns(path, [rr.TimeColumn(TIMELINE, duration=t)],
+* Error time series are buffered per (solution, vehicle) as blocks of rows of the eight
+  series and sent with ``RecordingStream.send_columns(path, [rr.TimeColumn(TIMELINE, duration=t)],
   [column])``, ``column`` the ``rr.ComponentColumn`` of ``Scalars:scalars`` that
   ``rr.Scalars.columns(scalars=...)`` would build (made directly: ~30 us less per entity).
 
@@ -70,6 +72,7 @@ import pyarrow as pa
 import rerun as rr
 import shapely
 from numpy.typing import ArrayLike, NDArray
+from rerun.chunk import Chunk
 
 from v2v.frames import GeoReference
 from v2v.traffic.snapshot import TrafficStep
@@ -450,14 +453,68 @@ _ERROR_COLUMNS = [0, 2, 1, 3, 4, 5, 6, 7]
 
 class _ErrorRows:
     """Error time-series rows of one (solution, vehicle), waiting for ``send_columns``:
-    one value per series per row, in :meth:`RerunReplayLogger.log_errors`' order."""
+    blocks of times ``(k,)`` and rows ``(k, 8)``, one value per series per row, in
+    :meth:`RerunReplayLogger.log_errors`' order."""
 
     __slots__ = ("paths", "times", "rows")
 
     def __init__(self, paths: tuple[str, ...]):
         self.paths = paths
-        self.times: list[float] = []
-        self.rows: list[Sequence[float]] = []
+        self.times: list[FloatArray] = []
+        self.rows: list[FloatArray] = []
+
+
+# ---------------------------------------------------------------------------- blueprint
+
+
+@functools.lru_cache(maxsize=8)
+def blueprint_chunks(
+    application_id: str,
+    solutions: tuple[str, ...],
+    vehicle_ids: tuple[str, ...],
+    sky_vehicle_ids: tuple[str, ...],
+    show_map: bool,
+) -> tuple[Chunk, ...]:
+    """The chunks of the default blueprint (:func:`v2v.viz.blueprint.default_blueprint`), made
+    once per process and arguments: what ``RecordingStream.send_blueprint`` would store.
+
+    ``send_blueprint`` builds the blueprint's archetypes in Python and logs them anew for
+    every recording (13-28 ms at 20 vehicles, 4-7 ms at 3), and rerun drains the in-memory
+    blueprint it sends, so it cannot be sent twice. Here it is built once with rerun's own
+    helper (``create_in_memory_blueprint``, which ``send_blueprint`` calls), encoded, and read
+    back as chunks (``rerun.chunk.RrdReader``), which every later recording of the process (a
+    sweep worker's runs) re-sends with :func:`send_blueprint_chunks` in ~1-3 ms. The content
+    is the same as ``send_blueprint``'s, the blueprint's ``log_time`` stamps aside (those of the
+    first build; test: ``test_blueprint_chunks_are_what_send_blueprint_stores``).
+    """
+    from rerun.blueprint.api import create_in_memory_blueprint
+    from rerun.chunk import RrdReader
+
+    blueprint = bp.default_blueprint(solutions, vehicle_ids, sky_vehicle_ids, show_map=show_map)
+    encoded = create_in_memory_blueprint(application_id=application_id, blueprint=blueprint).storage.drain_as_bytes()
+    with tempfile.TemporaryDirectory(prefix="v2v-blueprint-") as folder:
+        path = Path(folder) / "default.rbl"
+        path.write_bytes(encoded)
+        reader = RrdReader(path)
+        (store,) = reader.blueprints()
+        return tuple(reader.stream(store=store))
+
+
+def send_blueprint_chunks(rec: rr.RecordingStream, application_id: str, chunks: Sequence[Chunk]) -> None:
+    """Send ``chunks`` (:func:`blueprint_chunks`) to ``rec`` as a new blueprint, made active and
+    default: what ``rec.send_blueprint(..., make_active=True, make_default=True)`` does, the
+    chunks going into a fresh blueprint store (rerun's ``new_blueprint``) instead of being
+    logged from the Python objects."""
+    from rerun import bindings
+    from rerun.recording_stream import RecordingStream
+
+    stream = RecordingStream._from_native(
+        bindings.new_blueprint(application_id=application_id, make_default=False, make_thread_default=False,
+                               default_enabled=True)
+    )
+    storage = stream.memory_recording()
+    rr.send_chunks(chunks, recording=stream)
+    bindings.send_blueprint(storage.storage, make_active=True, make_default=True, recording=rec.to_native())
 
 
 # ---------------------------------------------------------------------------- logger
@@ -488,8 +545,9 @@ class RerunReplayLogger(ReplayLogger):
         # error series buffers: (solution, vehicle) -> its ERROR_SERIES paths, times, value rows
         self._errors: dict[tuple[str, str], _ErrorRows] = {}
         self._buffered_rows = 0
-        # log_estimates calls not yet turned into rows: (t_s, solution, labels, xy, cov_en)
-        self._estimates: list[tuple[float, str, list[str], FloatArray, FloatArray]] = []
+        # estimates not yet turned into rows: (times, vehicles per time, solution, labels, xy, cov_en)
+        self._estimates: list[tuple[list[float], list[int], str, list[str], FloatArray, FloatArray]] = []
+        self._estimate_times = 0  # times waiting in _estimates (each makes a points and an ellipses row)
         self._scene: dict[str, _SceneRows] = {}
         self._scene_rows = 0
         self.scene_rows_sent = 0  # scene rows (one per logging call and entity) sent with send_columns
@@ -708,10 +766,15 @@ class RerunReplayLogger(ReplayLogger):
             raise ValueError(
                 f"log_estimates: {len(vehicle_ids)} ids, {len(xy)} positions, {len(cov)} covariances"
             )
+        self._add_estimates([float(t_s)], [len(xy)], solution, [str(v) for v in vehicle_ids], xy, cov)
+
+    def _add_estimates(self, times: list[float], lengths: list[int], solution: str, labels: list[str],
+                       xy: FloatArray, cov: FloatArray) -> None:
         self._solutions.setdefault(solution)
         self._color_of(solution)
-        self._estimates.append((float(t_s), solution, [str(v) for v in vehicle_ids], xy, cov))
-        if self._scene_rows + 2 * len(self._estimates) >= self.params.flush_rows:  # a points and an ellipses row
+        self._estimates.append((times, lengths, solution, labels, xy, cov))
+        self._estimate_times += len(times)
+        if self._scene_rows + 2 * self._estimate_times >= self.params.flush_rows:  # a points and an ellipses row
             self._flush_scene()
 
     def _estimate_rows(self) -> None:
@@ -720,23 +783,24 @@ class RerunReplayLogger(ReplayLogger):
         if not self._estimates:
             return
         pending, self._estimates = self._estimates, []
-        by_solution: dict[str, list[tuple[float, str, list[str], FloatArray, FloatArray]]] = {}
+        self._estimate_times = 0
+        by_solution: dict[str, list[tuple[list[float], list[int], str, list[str], FloatArray, FloatArray]]] = {}
         for e in pending:
-            by_solution.setdefault(e[1], []).append(e)
+            by_solution.setdefault(e[2], []).append(e)
         r = self._rot_en_to_xy
         z = self.params.estimate_z_m
         for solution, calls in by_solution.items():
-            times = [c[0] for c in calls]
-            lengths = np.array([len(c[3]) for c in calls])
-            xy = np.concatenate([c[3] for c in calls])
-            cov_xy = r @ np.concatenate([c[4] for c in calls]) @ r.T
+            times = [t for c in calls for t in c[0]]
+            lengths = np.array([n for c in calls for n in c[1]], dtype=int)
+            xy = np.concatenate([c[4] for c in calls])
+            cov_xy = r @ np.concatenate([c[5] for c in calls]) @ r.T
             rgb_u8 = np.array(self._color_of(solution), dtype=np.uint8)
             self._add_rows(
                 bp.estimates_path(solution),
                 rr.Points3D,
                 times,
                 lengths.tolist(),
-                {"positions": np.column_stack([xy, np.full(len(xy), z)]), "labels": [v for c in calls for v in c[2]]},
+                {"positions": np.column_stack([xy, np.full(len(xy), z)]), "labels": [v for c in calls for v in c[3]]},
                 {"radii": 0.12, "colors": rgb_u8},
             )
             ok = np.all(np.isfinite(cov_xy), axis=(1, 2)) & np.all(np.isfinite(xy), axis=1)
@@ -892,12 +956,57 @@ class RerunReplayLogger(ReplayLogger):
         if values.shape != (len(vehicle_ids), _N_ERROR_VALUES):
             raise ValueError(f"log_errors_many: {len(vehicle_ids)} vehicle ids and {len(rows)} rows "
                              f"of {_N_ERROR_VALUES} numbers each expected, got rows of shape {values.shape}")
-        t = float(t_s)
+        self._add_errors(np.full(len(values), float(t_s)), solution, list(vehicle_ids), values)
+
+    def log_epochs(
+        self,
+        t_s: ArrayLike,
+        solution: str,
+        counts: ArrayLike,
+        vehicle_ids: Sequence[str],
+        est_xy_m: ArrayLike,
+        cov_en_m2: ArrayLike,
+        errors: ArrayLike,
+    ) -> None:
+        """Estimates and errors of many epochs of one solution (see
+        :meth:`v2v.viz.logger.ReplayLogger.log_epochs`): the same rows as a
+        :meth:`log_errors_many` and a :meth:`log_estimates` per epoch, buffered in a few
+        vectorized steps (``v2v.run`` logs each 30 s chunk of a solution so)."""
+        self._check_open()
+        times = np.asarray(t_s, dtype=float).reshape(-1)
+        lengths = np.asarray(counts, dtype=int).reshape(-1)
+        ids = [str(v) for v in vehicle_ids]
+        xy = np.array(est_xy_m, dtype=float).reshape(-1, 2)
+        cov = np.array(cov_en_m2, dtype=float).reshape(-1, 2, 2)
+        values = np.array(errors, dtype=np.float64).reshape(-1, _N_ERROR_VALUES)
+        if not (len(times) == len(lengths) and (lengths >= 0).all()
+                and len(ids) == len(xy) == len(cov) == len(values) == lengths.sum()):
+            raise ValueError(f"log_epochs: {len(times)} times and {len(lengths)} counts (adding up to "
+                             f"{lengths.sum()}) for {len(ids)} vehicle ids, {len(xy)} positions, {len(cov)} "
+                             f"covariances and {len(values)} error rows of {_N_ERROR_VALUES} numbers")
+        self._add_errors(np.repeat(times, lengths), solution, ids, values)
+        self._add_estimates(times.tolist(), lengths.tolist(), solution, ids, xy, cov)
+
+    def _add_errors(self, times: FloatArray, solution: str, vehicle_ids: list[str], values: FloatArray) -> None:
+        """Rows ``values[j]`` of ``vehicle_ids[j]`` at ``times[j]``, sorted into each vehicle's
+        buffer (in order; a vehicle's first row logs its series' styles)."""
         errors = self._errors
-        for v, row in zip(vehicle_ids, values.tolist(), strict=True):
-            buf = errors.get((solution, v)) or self._error_rows(solution, v)
-            buf.times.append(t)
-            buf.rows.append(row)
+        first = dict.fromkeys(vehicle_ids)  # vehicles by first appearance
+        if len(first) == len(vehicle_ids):  # one row per vehicle (one epoch)
+            for j, v in enumerate(vehicle_ids):
+                buf = errors.get((solution, v)) or self._error_rows(solution, v)
+                buf.times.append(times[j : j + 1])
+                buf.rows.append(values[j : j + 1])
+        else:
+            code = {v: k for k, v in enumerate(first)}
+            of = np.fromiter(map(code.__getitem__, vehicle_ids), dtype=np.intp, count=len(vehicle_ids))
+            order = np.argsort(of, kind="stable")
+            bounds = np.searchsorted(of[order], np.arange(len(first) + 1))
+            for k, v in enumerate(first):
+                buf = errors.get((solution, v)) or self._error_rows(solution, v)
+                rows = order[bounds[k] : bounds[k + 1]]
+                buf.times.append(times[rows])
+                buf.rows.append(values[rows])
         self._buffered_rows += len(vehicle_ids)
         if self._buffered_rows >= self.params.flush_rows:
             self._flush_series()
@@ -920,10 +1029,11 @@ class RerunReplayLogger(ReplayLogger):
         for buf in self._errors.values():
             if not buf.times:
                 continue
-            n = len(buf.times)
-            values = np.array(buf.rows, dtype=np.float64)[:, _ERROR_COLUMNS]  # (n, len(ERROR_SERIES))
+            times = np.concatenate(buf.times)
+            n = len(times)
+            values = np.concatenate(buf.rows)[:, _ERROR_COLUMNS]  # (n, len(ERROR_SERIES))
             # rounded nanoseconds, like the scene columns (a float array would be truncated)
-            ns = np.round(np.asarray(buf.times, dtype=np.float64) * 1e9).astype(np.int64).astype("timedelta64[ns]")
+            ns = np.round(times * 1e9).astype(np.int64).astype("timedelta64[ns]")
             index = [rr.TimeColumn(bp.TIMELINE, duration=ns)]
             # the column rr.Scalars.columns(scalars=...) builds, without the archetype's overhead
             descriptor = rr.Scalars.descriptor_scalars()
@@ -949,13 +1059,14 @@ class RerunReplayLogger(ReplayLogger):
         try:
             self._flush_series()
             self._flush_scene()
-            blueprint = bp.default_blueprint(
-                list(self._solutions),
-                list(self._error_vehicles),
-                list(self._sky_vehicles),
-                show_map=self.params.show_map,
+            chunks = blueprint_chunks(
+                self.params.application_id,
+                tuple(self._solutions),
+                tuple(self._error_vehicles),
+                tuple(self._sky_vehicles),
+                self.params.show_map,
             )
-            self._rec.send_blueprint(blueprint, make_active=True, make_default=True)
+            send_blueprint_chunks(self._rec, self.params.application_id, chunks)
             self._rec.flush()
             self._rec.disconnect()
             os.chmod(self._tmp_path, 0o644)  # mkstemp creates 0600; a replay is meant to be shared
