@@ -72,6 +72,24 @@ class _VehicleMeta:
     lane_index: int | None = None
 
 
+@dataclass(slots=True)
+class RawStep:
+    """One step's truth as libsumo gives it (:meth:`SumoSimulation.raw_snapshot`), not yet
+    converted (:meth:`SumoSimulation.convert`): the cluster vehicles present (``ids``, in
+    cluster order), per vehicle its ``getPosition3D`` (front bumper), ``getAngle`` (deg
+    clockwise from grid north) and ``more`` = (speed m/s, slope deg, lane id, lane position
+    m, lateral speed m/s, lane index, acceleration m/s^2, edge id, lateral lane position m);
+    the step's SUMO events so far and the background boxes."""
+
+    t_s: float
+    ids: list[str]
+    events: list[TrafficEvent]
+    background: np.ndarray
+    front: list[tuple[float, float, float]]
+    angle_deg: list[float]
+    more: list[tuple[Any, ...]]
+
+
 @dataclass
 class TrafficStats:
     warmup_s: float = 0.0
@@ -298,91 +316,117 @@ class SumoSimulation:
         return round(self._traci.simulation.getTime() - self._t0_sumo_s, 6)
 
     def snapshot(self) -> TrafficStep:
-        """The current truth (after the last step).
+        """The current truth (after the last step): :meth:`convert` of :meth:`raw_snapshot`."""
+        return self.convert([self.raw_snapshot()])[0]
 
-        Per vehicle only the libsumo getters and the scalar rigid-body velocity run in Python;
-        the frame conversions run on all vehicles of the step at once (one projection call
-        for the antennas and their Jacobian probes, two compiled kernels).
-        """
-        tc = self._traci
-        veh = tc.vehicle
-        t = self.t_s
+    def raw_snapshot(self) -> RawStep:
+        """What the current truth needs from libsumo, read now (the getters only): a
+        :class:`RawStep` for :meth:`convert`, which may run later on many steps at once."""
+        veh = self._traci.vehicle
         present = set(veh.getIDList())
         events = list(self._pending_events)
         self._pending_events.clear()
         ids = [v for v in self._meta if v in present]
-        n = len(ids)
-        if not n:
-            return TrafficStep(t_s=t, vehicles={}, events=tuple(events), background=self._background_boxes(present))
-        metas = [self._meta[v] for v in ids]
-        xyz_front = np.array([veh.getPosition3D(v) for v in ids])  # x, y as getPosition's
-        xy = xyz_front[:, :2]
-        grid_az_deg = np.array([veh.getAngle(v) for v in ids])
-        arms = self._lever_arms(ids)
-        fwd, ant_xy, ant_z, h, probe_x, probe_y = _antenna_kernel(xyz_front, grid_az_deg, arms,
-                                                                 self.scenario.network.origin_h_m)
-        lat3, lon3 = self.georef.xy_to_geodetic(probe_x, probe_y)  # antennas, then 1 m east / north probes
-        ecef, jac, fwd_enu = _enu_kernel(lat3, lon3, h, fwd)  # jac (n, 3, 2): net-XY vector -> ENU
-        lat, lon = lat3[:n], lon3[:n]
-        # True azimuth of the body axis: the grid angle plus the projection's convergence at
-        # the vehicle's own position.
-        azimuths = np.arctan2(fwd_enu[:, 0], fwd_enu[:, 1]) % (2 * math.pi)
-        az_list = azimuths.tolist()
-        ant_list, xy_list = ant_xy.tolist(), xy.tolist()
-        rows = []  # per vehicle: SUMO values not yet in arrays
-        v_grid, climb = [], []
-        for k, vid in enumerate(ids):
-            m = metas[k]
-            az = az_list[k]
-            continuing = m.prev_t_s is not None and abs(t - m.prev_t_s - self.dt_s) < 1e-6
-            yaw_rate = wrap_angle_scalar(az - m.prev_azimuth_rad) / self.dt_s if continuing else 0.0
-            m.prev_azimuth_rad, m.prev_t_s = az, t
-            speed = veh.getSpeed(vid)
-            slope = math.radians(veh.getSlope(vid))
-            lane_id = veh.getLaneID(vid)
-            arm = (ant_list[k][0] - xy_list[k][0], ant_list[k][1] - xy_list[k][1])
-            v_grid.append(self._grid_velocity(vid, lane_id, speed, slope, yaw_rate, arm))
-            climb.append(speed * math.sin(slope))
-            lane_index = veh.getLaneIndex(vid)
-            if m.lane_index is not None and lane_index != m.lane_index and not lane_id.startswith(":"):
-                events.append(TrafficEvent(t_s=t, kind=EventKind.LANE_CHANGE, vehicle_id=vid, detail=f"{m.lane_index}->{lane_index}"))
-            if not lane_id.startswith(":"):
-                m.lane_index = lane_index
-            rows.append((az, yaw_rate, speed, lane_id, lane_index))
-        vel = np.matmul(jac, np.array(v_grid)[:, :, None])[:, :, 0]  # one (3, 2) @ (2,) per vehicle
-        vel[:, 2] += climb
-        xyz = np.empty((n, 3))
-        xyz[:, :2], xyz[:, 2] = ant_xy, ant_z
-        states: dict[str, VehicleState] = {}
-        per_vehicle = zip(ids, metas, rows, xyz, lat.tolist(), lon.tolist(), h.tolist(), ecef, vel, xy, strict=True)
-        for vid, m, (az, yaw_rate, speed, lane_id, lane_index), xyz_k, lat_k, lon_k, h_k, ecef_k, vel_k, xy_k in per_vehicle:
-            states[vid] = VehicleState(
-                vehicle_id=vid,
-                cluster=m.cluster,
-                is_lead=m.is_lead,
-                t_s=t,
-                xyz_m=xyz_k,
-                lat_rad=lat_k,
-                lon_rad=lon_k,
-                h_m=h_k,
-                ecef_m=ecef_k,
-                vel_enu_mps=vel_k,
-                speed_mps=speed,
-                accel_mps2=veh.getAcceleration(vid),
-                azimuth_rad=az,
-                yaw_rate_rps=yaw_rate,
-                front_bumper_xy_m=xy_k,
-                edge_id=veh.getRoadID(vid),
-                lane_id=lane_id,
-                lane_index=lane_index,
-                lane_width_m=self._lane_width(lane_id),
-                lateral_offset_m=veh.getLateralLanePosition(vid),
-                length_m=m.length_m,
-                width_m=m.width_m,
-                height_m=m.height_m,
-            )
-        self._update_membership(ids, metas, ecef, t, events)
-        return TrafficStep(t_s=t, vehicles=states, events=tuple(events), background=self._background_boxes(present))
+        return RawStep(
+            t_s=self.t_s, ids=ids, events=events, background=self._background_boxes(present),
+            front=[veh.getPosition3D(v) for v in ids], angle_deg=[veh.getAngle(v) for v in ids],
+            more=[(veh.getSpeed(v), veh.getSlope(v), veh.getLaneID(v), veh.getLanePosition(v), veh.getLateralSpeed(v),
+                   veh.getLaneIndex(v), veh.getAcceleration(v), veh.getRoadID(v), veh.getLateralLanePosition(v))
+                  for v in ids])
+
+    def convert(self, raws: list[RawStep]) -> list[TrafficStep]:
+        """Truth snapshots of consecutive raw steps (:meth:`raw_snapshot`, in step order, each
+        converted once: the yaw rate, lane-change and cluster-membership events carry state from
+        one step to the next).
+
+        Per vehicle only the scalar rigid-body velocity and the bookkeeping run in Python; the
+        frame conversions run on every vehicle of every step at once (one projection call for
+        the antennas and their Jacobian probes, two compiled kernels, element for element the
+        arithmetic of one step at a time, so the truth does not depend on how many steps are
+        converted together).
+        """
+        full = [r for r in raws if r.ids]
+        if full:
+            xyz_front = np.array([p for r in full for p in r.front], dtype=float)  # x, y as getPosition's
+            grid_az_deg = np.array([a for r in full for a in r.angle_deg], dtype=float)
+            arms = np.concatenate([self._lever_arms(r.ids) for r in full])
+            fwd, ant_xy, ant_z, h, probe_x, probe_y = _antenna_kernel(xyz_front, grid_az_deg, arms,
+                                                                     self.scenario.network.origin_h_m)
+            lat3, lon3 = self.georef.xy_to_geodetic(probe_x, probe_y)  # antennas, then 1 m east / north probes
+            ecef, jac, fwd_enu = _enu_kernel(lat3, lon3, h, fwd)  # jac (n, 3, 2): net-XY vector -> ENU
+            n_all = len(h)
+            lat, lon = lat3[:n_all], lon3[:n_all]
+            # True azimuth of the body axis: the grid angle plus the projection's convergence at
+            # the vehicle's own position.
+            az_list = (np.arctan2(fwd_enu[:, 0], fwd_enu[:, 1]) % (2 * math.pi)).tolist()
+            ant_list, xy = ant_xy.tolist(), xyz_front[:, :2]
+            xy_list = xy.tolist()
+            v_grid, climb, yaw = [], [], []
+            k = 0
+            for r in full:
+                t = r.t_s
+                for vid, a_deg, (speed, slope_deg, lane_id, lane_pos, lat_speed, lane_index, *_) in zip(
+                        r.ids, r.angle_deg, r.more, strict=True):
+                    m = self._meta[vid]
+                    az = az_list[k]
+                    continuing = m.prev_t_s is not None and abs(t - m.prev_t_s - self.dt_s) < 1e-6
+                    yaw_rate = wrap_angle_scalar(az - m.prev_azimuth_rad) / self.dt_s if continuing else 0.0
+                    m.prev_azimuth_rad, m.prev_t_s = az, t
+                    yaw.append(yaw_rate)
+                    slope = math.radians(slope_deg)
+                    arm = (ant_list[k][0] - xy_list[k][0], ant_list[k][1] - xy_list[k][1])
+                    v_grid.append(self._grid_velocity(lane_id, lane_pos, a_deg, lat_speed, speed, slope, yaw_rate, arm))
+                    climb.append(speed * math.sin(slope))
+                    if m.lane_index is not None and lane_index != m.lane_index and not lane_id.startswith(":"):
+                        r.events.append(TrafficEvent(t_s=t, kind=EventKind.LANE_CHANGE, vehicle_id=vid,
+                                                     detail=f"{m.lane_index}->{lane_index}"))
+                    if not lane_id.startswith(":"):
+                        m.lane_index = lane_index
+                    k += 1
+            vel = np.matmul(jac, np.array(v_grid)[:, :, None])[:, :, 0]  # one (3, 2) @ (2,) per vehicle
+            vel[:, 2] += climb
+            xyz = np.empty((n_all, 3))
+            xyz[:, :2], xyz[:, 2] = ant_xy, ant_z
+            lat_l, lon_l, h_l = lat.tolist(), lon.tolist(), h.tolist()
+        out: list[TrafficStep] = []
+        k = 0
+        for r in raws:
+            if not r.ids:
+                out.append(TrafficStep(t_s=r.t_s, vehicles={}, events=tuple(r.events), background=r.background))
+                continue
+            t, k0 = r.t_s, k
+            states: dict[str, VehicleState] = {}
+            for vid, (speed, _, lane_id, _, _, lane_index, accel, road_id, lat_pos) in zip(r.ids, r.more, strict=True):
+                m = self._meta[vid]
+                states[vid] = VehicleState(
+                    vehicle_id=vid,
+                    cluster=m.cluster,
+                    is_lead=m.is_lead,
+                    t_s=t,
+                    xyz_m=xyz[k],
+                    lat_rad=lat_l[k],
+                    lon_rad=lon_l[k],
+                    h_m=h_l[k],
+                    ecef_m=ecef[k],
+                    vel_enu_mps=vel[k],
+                    speed_mps=speed,
+                    accel_mps2=accel,
+                    azimuth_rad=az_list[k],
+                    yaw_rate_rps=yaw[k],
+                    front_bumper_xy_m=xy[k],
+                    edge_id=road_id,
+                    lane_id=lane_id,
+                    lane_index=lane_index,
+                    lane_width_m=self._lane_width(lane_id),
+                    lateral_offset_m=lat_pos,
+                    length_m=m.length_m,
+                    width_m=m.width_m,
+                    height_m=m.height_m,
+                )
+                k += 1
+            self._update_membership(r.ids, [self._meta[v] for v in r.ids], ecef[k0:k], t, r.events)
+            out.append(TrafficStep(t_s=t, vehicles=states, events=tuple(r.events), background=r.background))
+        return out
 
     def _update_membership(self, ids: list[str], metas: list[_VehicleMeta], ecef: np.ndarray, t: float,
                            events: list[TrafficEvent]) -> None:
@@ -446,8 +490,8 @@ class SumoSimulation:
         units, cum, factor = lane
         return units[min(bisect.bisect_right(cum, lane_pos_m * factor), len(cum) - 1)], factor
 
-    def _grid_velocity(self, vid: str, lane_id: str, speed: float, slope: float, yaw_rate: float,
-                       arm_xy: tuple[float, float]) -> tuple[float, float]:
+    def _grid_velocity(self, lane_id: str, lane_pos_m: float, angle_deg: float, lateral_speed_mps: float,
+                       speed: float, slope: float, yaw_rate: float, arm_xy: tuple[float, float]) -> tuple[float, float]:
         """Horizontal velocity of the antenna in net XY (m/s), consistent with the antenna track.
 
         Rigid body: ``v_ant = v_front + omega x r`` with ``r = antenna - front bumper``.
@@ -459,15 +503,14 @@ class SumoSimulation:
         ``getSpeed`` is the speed *at* the step, not its mean. The caller maps it to ENU
         with the projection's Jacobian and adds the climb ``speed sin(slope)``.
         """
-        veh = self._traci.vehicle
-        tan = self._lane_tangent(lane_id, veh.getLanePosition(vid))
+        tan = self._lane_tangent(lane_id, lane_pos_m)
         if tan is None:
-            a = math.radians(veh.getAngle(vid))
+            a = math.radians(angle_deg)
             (t0, t1), factor = (math.sin(a), math.cos(a)), 1.0
         else:
             (t0, t1), factor = tan
         along = speed * math.cos(slope) * factor
-        lateral = veh.getLateralSpeed(vid)  # along the left normal (-t1, t0)
+        lateral = lateral_speed_mps  # along the left normal (-t1, t0)
         return (along * t0 + lateral * -t1 + yaw_rate * arm_xy[1],
                 along * t1 + lateral * t0 + yaw_rate * -arm_xy[0])
 
@@ -505,12 +548,18 @@ class SumoSimulation:
 
     def step(self) -> TrafficStep:
         """Advance SUMO by one step and return the truth snapshot."""
+        return self.convert([self.step_raw()])[0]
+
+    def step_raw(self) -> RawStep:
+        """Advance SUMO by one step and return what its truth needs from libsumo: a run of
+        these converted together (:meth:`convert`) gives what :meth:`step` gives one by one,
+        at a fraction of the per-step cost (``v2v.run`` converts each chunk's steps so)."""
         tc = self._traci
         tc.simulationStep()
         now = tc.simulation.getTime()
         self._spawn_background(now)
         self._record_sumo_events(self.t_s)
-        return self.snapshot()
+        return self.raw_snapshot()
 
     def cluster_vehicle_ids(self) -> list[str]:
         return list(self._meta)
