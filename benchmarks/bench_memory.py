@@ -5,7 +5,7 @@ Issue 8: "a 1-hour, 10-vehicle run keeps memory flat (measure)". One run of
 repeated so it lasts the whole run, one GPS+UWB+Bearing solution, replay off) in this
 process. A sampler thread reads the RSS (psutil, else /proc/self/statm, else
 ``resource.getrusage`` peak) every 0.2 wall seconds; light hooks on
-``SumoSimulation.step`` and the solution's ``truth_at`` callback tag each sample with the
+``SumoSimulation.step`` / ``step_raw`` and the solution's ``truth_at`` callback tag each sample with the
 stage (traffic, sensors/exchange, filter; "outputs" for the end-of-run tables of a streamed
 run, excluded from the slopes) and the simulated time it has reached.
 
@@ -92,14 +92,18 @@ def install_hooks(sampler: Sampler) -> None:
     import v2v.pipeline as pipeline
     from v2v.traffic import sumo
 
-    step0 = sumo.SumoSimulation.step
+    # v2v.run steps SUMO with step_raw (the truth converted 256 steps at a time); step for
+    # callers stepping one converted snapshot at a time
+    def tagged(f):
+        def step(self, *a, **k):
+            st = f(self, *a, **k)
+            sampler.mark("traffic", float(st.t_s))
+            return st
 
-    def step(self, *a, **k):
-        st = step0(self, *a, **k)
-        sampler.mark("traffic", float(st.t_s))
-        return st
+        return step
 
-    sumo.SumoSimulation.step = step
+    for name in ("step", "step_raw"):
+        setattr(sumo.SumoSimulation, name, tagged(getattr(sumo.SumoSimulation, name)))
     run0 = pipeline.run_solution
 
     def run_solution(sol, ekf, events, output_times, truth_at, *a, **k):
