@@ -402,3 +402,48 @@ def test_update_log_columns_of_every_kind_of_piece_in_order():
     bad.add(0.1, recs[:2], [False])  # one flag for two updates
     with pytest.raises(ValueError, match="faulty flags"):
         bad.flush()
+
+
+def test_epoch_blocks_make_the_frame_the_dict_rows_make():
+    """``SolutionRecord.take_frame`` builds a chunk of ``EpochBlock`` epochs column by column:
+    the frame (values, column order, dtypes) equals pandas' records constructor on the same
+    rows written out by hand (azimuth errors with a NaN, the lead's azimuth error on every
+    row, counts as integers); a chunk that also holds a dict-rows epoch (a vehicle that left
+    the cluster) is built from the rows, NaN where they lack a key."""
+    import pandas as pd
+
+    from v2v.metrics.errors import EPOCH_COLUMNS
+    from v2v.pipeline import _ROW_COUNT_KEYS, EpochBlock, SolutionRecord
+
+    m, nan = len(EPOCH_COLUMNS), float("nan")
+
+    def block(t, az):
+        return EpochBlock(t_s=t, solution="GPS+Bearing", vehicles=["c1.1", "c1.2"], initialized=[True, False],
+                          nums=np.arange(2.0 * m).reshape(2, m) + t, true_lane=[0, 1], lead_lane=1, lane_width=[3.2, 3.5],
+                          count_keys=_ROW_COUNT_KEYS, counts=np.arange(16, dtype=np.int64).reshape(2, 8),
+                          integrity=[True, False], azimuth_err=az, lead_azimuth_err=-0.25)
+
+    def row(t, k, az):
+        r = {"t_s": t, "solution": "GPS+Bearing", "vehicle": f"c1.{k + 1}", "initialized": k == 0}
+        r.update({c: float(j + m * k) + t for j, c in enumerate(EPOCH_COLUMNS)})
+        r.update({"true_lane_index": k, "lead_lane_index": 1, "lane_width_m": [3.2, 3.5][k]})
+        r.update({c: 8 * k + j for j, c in enumerate(_ROW_COUNT_KEYS)})
+        r.update({"integrity_available": k == 0, "azimuth_err_rad": az[k], "lead_azimuth_err_rad": -0.25})
+        return r
+
+    rec = SolutionRecord(name="GPS+Bearing")
+    rec.add_epoch(block(0.1, [0.01, nan]))
+    rec.add_epoch([])  # an epoch without rows adds nothing
+    rec.add_epoch(block(0.2, [0.02, -0.03]))
+    want = [row(0.1, 0, [0.01, nan]), row(0.1, 1, [0.01, nan]), row(0.2, 0, [0.02, -0.03]), row(0.2, 1, [0.02, -0.03])]
+    got = rec.take_frame()
+    pd.testing.assert_frame_equal(got, pd.DataFrame(want), check_exact=True)
+    assert got["used_pr"].dtype == np.int64 and got["initialized"].dtype == bool
+    assert rec.take_frame() is None
+    rec.add_epoch(block(0.3, [0.04, 0.05]))
+    left = {"t_s": 0.4, "solution": "GPS+Bearing", "vehicle": "c1.2", "initialized": False}
+    rec.add_epoch([left])
+    mixed = rec.take_frame()
+    pd.testing.assert_frame_equal(mixed, pd.DataFrame([row(0.3, 0, [0.04, 0.05]), row(0.3, 1, [0.04, 0.05]), left]),
+                                  check_exact=True)
+    assert np.isnan(mixed["used_pr"].iloc[2]) and mixed["used_pr"].dtype == np.float64

@@ -16,7 +16,7 @@ from collections import Counter
 from collections.abc import Callable, Iterable, Sequence
 from dataclasses import dataclass, field
 from operator import itemgetter
-from typing import Any
+from typing import TYPE_CHECKING, Any
 
 import numpy as np
 
@@ -43,6 +43,9 @@ from v2v.frames import ecef_to_enu_rotation
 from v2v.metrics.errors import EPOCH_COLUMNS, epoch_errors
 from v2v.sensors.measurements import Bearings, GnssEpoch, UwbRanges
 from v2v.traffic.snapshot import TrafficStep
+
+if TYPE_CHECKING:
+    import pandas as pd
 
 LEAVE_AFTER_S = 5.0  # a vehicle the lead has not heard from for this long has left the cluster
 
@@ -616,6 +619,93 @@ class UpdateLog:
         return out
 
 
+@dataclass(slots=True, eq=False)
+class EpochBlock:
+    """One output epoch of one solution as columns: the rows :func:`_epoch_record` would
+    give as dicts (:meth:`rows`), for an epoch whose rows all have the same keys (every
+    present vehicle in the filter; azimuth states for all of them or none).
+
+    ``nums`` ``(n, len(EPOCH_COLUMNS))``, ``counts`` ``(n, len(count_keys))``; per row
+    ``vehicles``, ``initialized``, ``true_lane``, ``lane_width``, ``integrity`` and
+    ``azimuth_err`` (``None``: no azimuth states); ``lead_azimuth_err`` is every row's
+    (``None``: the lead has no azimuth state).
+    """
+
+    t_s: float
+    solution: str
+    vehicles: list[str]
+    initialized: list[bool]
+    nums: np.ndarray
+    true_lane: list[int]
+    lead_lane: int
+    lane_width: list[float]
+    count_keys: tuple[str, ...]
+    counts: np.ndarray
+    integrity: list[bool]
+    azimuth_err: list[float] | None
+    lead_azimuth_err: float | None
+
+    @property
+    def keys(self) -> tuple[str, ...]:
+        """The rows' keys, in order (the frame's columns)."""
+        return (("t_s", "solution", "vehicle", "initialized", *EPOCH_COLUMNS, "true_lane_index", "lead_lane_index",
+                 "lane_width_m", *self.count_keys, "integrity_available")
+                + (("azimuth_err_rad",) if self.azimuth_err is not None else ())
+                + (("lead_azimuth_err_rad",) if self.lead_azimuth_err is not None else ()))
+
+    def rows(self) -> list[dict[str, Any]]:
+        """The epoch's rows as :func:`_epoch_record` builds dict rows (same keys, order and values)."""
+        nums, counts = self.nums.tolist(), self.counts.tolist()
+        rows = []
+        for k, v in enumerate(self.vehicles):
+            row = {"t_s": self.t_s, "solution": self.solution, "vehicle": v, "initialized": self.initialized[k],
+                   **dict(zip(EPOCH_COLUMNS, nums[k], strict=True)),
+                   "true_lane_index": self.true_lane[k], "lead_lane_index": self.lead_lane,
+                   "lane_width_m": self.lane_width[k], **dict(zip(self.count_keys, counts[k], strict=True)),
+                   "integrity_available": self.integrity[k]}
+            if self.azimuth_err is not None:
+                row["azimuth_err_rad"] = self.azimuth_err[k]
+            if self.lead_azimuth_err is not None:
+                row["lead_azimuth_err_rad"] = self.lead_azimuth_err
+            rows.append(row)
+        return rows
+
+
+def _flat_rows(epochs: Sequence[EpochBlock | list[dict[str, Any]]]) -> list[dict[str, Any]]:
+    return [r for e in epochs for r in (e.rows() if isinstance(e, EpochBlock) else e)]
+
+
+def _blocks_frame(blocks: Sequence[EpochBlock]) -> pd.DataFrame:
+    """``pandas.DataFrame`` of the blocks' rows (blocks with the same keys), column by column:
+    the dtypes pandas' records constructor infers from the dict rows (float64, int64, bool,
+    and its string dtype for the names)."""
+    import pandas as pd
+
+    b0 = blocks[0]
+    n = [len(b.vehicles) for b in blocks]
+    nums = np.concatenate([b.nums for b in blocks])
+    counts = np.concatenate([b.counts for b in blocks])
+    cols: dict[str, Any] = {
+        "t_s": np.repeat(np.array([b.t_s for b in blocks], dtype=np.float64), n),
+        "solution": [b.solution for b in blocks for _ in b.vehicles],
+        "vehicle": [v for b in blocks for v in b.vehicles],
+        "initialized": np.array([x for b in blocks for x in b.initialized], dtype=bool),
+    }
+    for j, c in enumerate(EPOCH_COLUMNS):
+        cols[c] = nums[:, j]
+    cols["true_lane_index"] = np.array([x for b in blocks for x in b.true_lane], dtype=np.int64)
+    cols["lead_lane_index"] = np.repeat(np.array([b.lead_lane for b in blocks], dtype=np.int64), n)
+    cols["lane_width_m"] = np.array([x for b in blocks for x in b.lane_width], dtype=np.float64)
+    for j, c in enumerate(b0.count_keys):
+        cols[c] = counts[:, j]
+    cols["integrity_available"] = np.array([x for b in blocks for x in b.integrity], dtype=bool)
+    if b0.azimuth_err is not None:
+        cols["azimuth_err_rad"] = np.array([x for b in blocks for x in b.azimuth_err or ()], dtype=np.float64)
+    if b0.lead_azimuth_err is not None:
+        cols["lead_azimuth_err_rad"] = np.repeat(np.array([b.lead_azimuth_err for b in blocks], dtype=np.float64), n)
+    return pd.DataFrame(cols)
+
+
 @dataclass
 class SolutionRecord:
     """Per-epoch estimates and per-update diagnostics of one solution.
@@ -629,7 +719,8 @@ class SolutionRecord:
     membership: list[tuple[float, str, str]] = field(default_factory=list)  # (t_s, vehicle, left|joined)
     counters: dict[str, int] = field(default_factory=dict)  # the filter's event counters at the end
     log: UpdateLog = field(default_factory=UpdateLog)
-    _rows: list[dict[str, Any]] = field(default_factory=list, repr=False)
+    # epochs not yet taken: an EpochBlock (the usual epoch) or the epoch's dict rows
+    _epochs: list[EpochBlock | list[dict[str, Any]]] = field(default_factory=list, repr=False)
 
     @property
     def updates(self) -> dict[str, list[Any]]:
@@ -639,25 +730,45 @@ class SolutionRecord:
     def rows(self) -> dict[str, list[Any]]:
         """The epochs not yet taken, as columns (a column that first appears in a later row,
         e.g. after a vehicle rejoined, is NaN before it; so is a key a row lacks)."""
+        rows = _flat_rows(self._epochs)
         keys: dict[str, None] = {}
-        for r in self._rows:
+        for r in rows:
             if len(r) != len(keys) or r.keys() != keys.keys():
                 keys.update(dict.fromkeys(r))
         nan = float("nan")
-        return {k: [r.get(k, nan) for r in self._rows] for k in keys}
+        return {k: [r.get(k, nan) for r in rows] for k in keys}
 
     def add_row(self, row: dict[str, Any]) -> None:
-        self._rows.append(row)
+        self._epochs.append([row])
+
+    def add_epoch(self, epoch: EpochBlock | list[dict[str, Any]]) -> None:
+        """One output epoch's rows: an :class:`EpochBlock` or a list of row dicts (none: nothing)."""
+        if isinstance(epoch, EpochBlock) or epoch:
+            self._epochs.append(epoch)
 
     def take_rows(self) -> list[dict[str, Any]]:
         """The epochs recorded since the last call (one dict per row), and forget them.
 
         ``pandas.DataFrame`` of them is the frame of :attr:`rows`: columns in order of first
-        appearance, NaN where a row lacks a key. (A streamed run builds each chunk's frame
-        so: pandas' records constructor fills it in C, ~2x faster than the column lists.)"""
-        rows = self._rows
-        self._rows = []
-        return rows
+        appearance, NaN where a row lacks a key (:meth:`take_frame` builds it faster)."""
+        epochs, self._epochs = self._epochs, []
+        return _flat_rows(epochs)
+
+    def take_frame(self) -> pd.DataFrame | None:
+        """The frame of the epochs recorded since the last call (``None``: none), and forget
+        them: ``pandas.DataFrame(take_rows())``, built from the blocks' columns when every
+        epoch is an :class:`EpochBlock` with the same columns (the usual chunk: ~3x faster
+        than pandas' records constructor on the dict rows), else from the rows."""
+        import pandas as pd
+
+        epochs, self._epochs = self._epochs, []
+        if not epochs:
+            return None
+        first = epochs[0]
+        if isinstance(first, EpochBlock) and all(isinstance(e, EpochBlock) and e.keys == first.keys for e in epochs):
+            return _blocks_frame(epochs)  # type: ignore[arg-type]
+        rows = _flat_rows(epochs)
+        return pd.DataFrame(rows) if rows else None
 
 
 def _corrupting_prns(ev: Event, kind: str) -> dict[str, frozenset[int]] | None:
@@ -841,16 +952,17 @@ class SolutionRunner:
             if step is None or lead not in step.vehicles:
                 pending = Updates()
                 continue
-            rows = _epoch_rows(sol.name, t_out, ekf, step, lead, vehicles, pending)
+            epoch = _epoch_record(sol.name, t_out, ekf, step, lead, vehicles, pending)
             if ekf.config.phase is not None:
+                rows = epoch.rows() if isinstance(epoch, EpochBlock) else epoch
                 # the status belongs to a GNSS epoch delivered in this output interval (t_prev_out, t_out]
                 fresh = last_gnss is not None and (t_prev_out is None or last_gnss[0] > t_prev_out + 1e-9)
                 _phase_columns(rows, ekf, last_gnss[1] if fresh and last_gnss is not None else None, lead)
+                epoch = rows
             t_prev_out = t_out
-            for r in rows:
-                rec.add_row(r)
+            rec.add_epoch(epoch)
             if self.on_epoch is not None:
-                self.on_epoch(t_out, sol.name, ekf, step, rows)
+                self.on_epoch(t_out, sol.name, ekf, step, epoch.rows() if isinstance(epoch, EpochBlock) else epoch)
             pending = Updates()
         self.t_filter, self.pending, self.last_gnss, self.t_prev_out = t_filter, pending, last_gnss, t_prev_out
         rec.log.flush()
@@ -980,10 +1092,20 @@ _ROW_COUNT_KEYS_PHASE = _ROW_COUNT_KEYS + ("used_phase", "rejected_phase")
 
 def _epoch_rows(name: str, t_s: float, ekf: ClusterEkf, step: TrafficStep, lead: str, vehicles: Sequence[str],
                 infos: Sequence[UpdateInfo]) -> list[dict[str, Any]]:
+    """:func:`_epoch_record`'s rows as dicts."""
+    epoch = _epoch_record(name, t_s, ekf, step, lead, vehicles, infos)
+    return epoch.rows() if isinstance(epoch, EpochBlock) else epoch
+
+
+def _epoch_record(name: str, t_s: float, ekf: ClusterEkf, step: TrafficStep, lead: str, vehicles: Sequence[str],
+                  infos: Sequence[UpdateInfo]) -> EpochBlock | list[dict[str, Any]]:
     """One row per cluster vehicle at output epoch ``t_s``: truth and estimate relative to the
     lead (ENU), errors and 1-sigma in the lead's frame (along, across-left, up), NEES of the
     position, update counts; the numbers of all vehicles from one compiled call
-    (:func:`v2v.metrics.errors.epoch_errors`)."""
+    (:func:`v2v.metrics.errors.epoch_errors`). As an :class:`EpochBlock` when every present
+    vehicle is in the filter and all or none of them have an azimuth state (the usual epoch),
+    else as dict rows (a vehicle that left the cluster, as the lead sees it, has a row without
+    an estimate)."""
     lead_st = step.vehicles[lead]
     x, P = ekf.state_arrays()  # (epoch_errors only reads them)
     lay = ekf.layout
@@ -998,9 +1120,22 @@ def _epoch_rows(name: str, t_s: float, ekf: ClusterEkf, step: TrafficStep, lead:
             ecef_to_enu_rotation(lead_st.lat_rad, lead_st.lon_rad), np.array([st.vel_enu_mps for st in sts], dtype=float),
             np.asarray(lead_st.vel_enu_mps, dtype=float), float(np.sin(a)), float(np.cos(a)),
             np.array([ekf.is_initialized(v) for v in est_v]))
-        num = dict(zip(est_v, nums.tolist(), strict=True))
     count_keys = _ROW_COUNT_KEYS_PHASE if ekf.config.phase is not None else _ROW_COUNT_KEYS
     integrity = getattr(ekf, "integrity_available", {})
+    lead_az = (float(_wrap(ekf.azimuth_rad(lead) - lead_st.azimuth_rad)) if ekf.is_azimuth_initialized(lead)
+               else float("nan")) if lay.has("azimuth", lead) else None
+    has_az = [lay.has("azimuth", v) for v in est_v]
+    present = [v for v in vehicles if v in step.vehicles]
+    if est_v and present == est_v and (all(has_az) or not any(has_az)):
+        return EpochBlock(
+            t_s=t_s, solution=name, vehicles=est_v, initialized=[ekf.is_initialized(v) for v in est_v], nums=nums,
+            true_lane=[st.lane_index for st in sts], lead_lane=lead_st.lane_index,
+            lane_width=[st.lane_width_m for st in sts], count_keys=count_keys,
+            counts=np.array([[counts.get(v, {}).get(key, 0) for key in count_keys] for v in est_v], dtype=np.int64),
+            integrity=[bool(integrity.get(v, False)) for v in est_v],
+            azimuth_err=[_azimuth_err(ekf, v, st) for v, st in zip(est_v, sts, strict=True)] if has_az[0] else None,
+            lead_azimuth_err=lead_az)
+    num = dict(zip(est_v, nums.tolist(), strict=True)) if est_v else {}
     rows = []
     for v in vehicles:
         st = step.vehicles.get(v)
@@ -1017,12 +1152,17 @@ def _epoch_rows(name: str, t_s: float, ekf: ClusterEkf, step: TrafficStep, lead:
             row[key] = c.get(key, 0)
         row["integrity_available"] = bool(integrity.get(v, False))
         if lay.has("azimuth", v):
-            row["azimuth_err_rad"] = float(_wrap(ekf.azimuth_rad(v) - st.azimuth_rad)) if ekf.is_azimuth_initialized(v) else float("nan")
+            row["azimuth_err_rad"] = _azimuth_err(ekf, v, st)
         rows.append(row)
-    if lay.has("azimuth", lead):
+    if lead_az is not None:
         for r in rows:
-            r["lead_azimuth_err_rad"] = float(_wrap(ekf.azimuth_rad(lead) - lead_st.azimuth_rad)) if ekf.is_azimuth_initialized(lead) else float("nan")
+            r["lead_azimuth_err_rad"] = lead_az
     return rows
+
+
+def _azimuth_err(ekf: ClusterEkf, v: str, st: Any) -> float:
+    """The azimuth state's error (wrapped, rad); NaN before it is initialized."""
+    return float(_wrap(ekf.azimuth_rad(v) - st.azimuth_rad)) if ekf.is_azimuth_initialized(v) else float("nan")
 
 
 def _phase_columns(rows: list[dict[str, Any]], ekf: ClusterEkf, gnss: dict[str, GnssEpoch] | None,

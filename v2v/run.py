@@ -537,9 +537,8 @@ def _run_scenario(scenario: Scenario, out_dir: Path, *, quiet: bool, replay: boo
                         rec = pipeline.run_solution(runner.sol, runner.ekf, cl.events, times, truth_at, cl.lead,
                                                     runner.vehicles, runner=runner)
                         consumed = runner.consumed
-                        rows = rec.take_rows()
-                        if rows:
-                            frame = pd.DataFrame(rows)
+                        frame = rec.take_frame()
+                        if frame is not None:
                             if log_epochs is not None:
                                 log_epochs(runner.sol.name, cl.lead, frame, truth_at)
                             with open(part, "ab") as f:
