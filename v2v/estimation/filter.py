@@ -1319,11 +1319,12 @@ class ClusterFilterBase(ABC):
         z = np.asarray(bearings.bearing_rad, dtype=float)
         az = np.asarray(bearings.azimuth_reported_rad, dtype=float)
         if len(use) == len(bearings.a):  # the usual case: every bearing usable (use is 0, 1, ..., m - 1)
-            return Updates([self._bearing_sequence(list(bearings.a), list(bearings.b), z, az)])
+            return Updates([self._bearing_sequence(bearings.a, bearings.b, z, az)])
         return Updates([self._bearing_sequence([bearings.a[k] for k in use], [bearings.b[k] for k in use], z[use],
                                                az[use])])
 
-    def _bearing_sequence(self, a_list: list[str], b_list: list[str], z: F64, az_reported: F64) -> Sequence[UpdateInfo]:
+    def _bearing_sequence(self, a_list: Sequence[str], b_list: Sequence[str], z: F64,
+                          az_reported: F64) -> Sequence[UpdateInfo]:
         """Engine hook (default: one Python scalar update per bearing): sequential updates,
         each re-linearized at the current state (second-order terms and deferral as for UWB;
         an estimated azimuth is initialized at its first bearing)."""
@@ -1658,6 +1659,10 @@ class ClusterEkf(ClusterFilterBase):
         self._drift = {v: lay.drift(v) for v in lay.vehicles}
         self._last_batch: _GnssBatch | None = None
         self._az_index = {v: lay.azimuth(v) for v in lay.azimuth_vehicles}
+        # the last bearing batch's names and their kernel indices (the same every epoch of a steady cluster)
+        self._bearing_names: tuple[tuple[str, ...], tuple[str, ...]] | None = None
+        self._bearing_index: tuple[NDArray[np.int64], NDArray[np.int64], NDArray[np.int64],
+                                   tuple[tuple[str, str], ...]] | None = None
         pc = self.config.process  # kernels.predict_all's parameter vectors
         self._vpar = np.array([pc.vel_tau_s, pc.vel_sigma_horizontal_mps, pc.vel_sigma_vertical_mps, pc.drift_tau_s,
                                pc.drift_sigma_mps, pc.clock_bias_psd_m2ps])
@@ -1694,7 +1699,7 @@ class ClusterEkf(ClusterFilterBase):
         self._P[s, s] = cov
 
     # ----------------------------------------------------------------- compiled batches
-    def _nl_fractions(self, a_list: list[str], b_list: list[str]) -> F64:
+    def _nl_fractions(self, a_list: Sequence[str], b_list: Sequence[str]) -> F64:
         """:meth:`_nonlinear_fraction` of every measurement of a batch."""
         if not any(self.gnss_weak.values()):  # no weak vehicle: the configured fraction for all
             return np.full(len(a_list), self.config.nonlinear_fraction)
@@ -1812,13 +1817,11 @@ class ClusterEkf(ClusterFilterBase):
                                      self._az_ia, self._az_ir, self._apar)
         return self._uwb_records(recs, a_list, b_list, pairs)
 
-    def _bearing_sequence(self, a_list: list[str], b_list: list[str], z: F64, az_reported: F64) -> Sequence[UpdateInfo]:
+    def _bearing_sequence(self, a_list: Sequence[str], b_list: Sequence[str], z: F64,
+                          az_reported: F64) -> Sequence[UpdateInfo]:
         """All usable bearings in one :func:`v2v.estimation.kernels.bearing_batch` call."""
         cfg = self.config
-        m = len(a_list)
-        sa = np.fromiter(map(self._pos0.__getitem__, a_list), dtype=np.int64, count=m)
-        sb = np.fromiter(map(self._pos0.__getitem__, b_list), dtype=np.int64, count=m)
-        iaz = np.fromiter(map(self._az_index.get, a_list, repeat(-1)), dtype=np.int64, count=m)
+        sa, sb, iaz, pair_names = self._bearing_indices(tuple(a_list), tuple(b_list))
         ready = np.zeros(self.layout.n, dtype=np.bool_)
         for v, i in self._az_index.items():
             ready[i] = self._azimuth_ready[v]
@@ -1828,10 +1831,24 @@ class ClusterEkf(ClusterFilterBase):
                                           cfg.azimuth_sigma0_rad**2)
         for v, i in self._az_index.items():
             self._azimuth_ready[v] = bool(ready[i])
-        pairs = list(zip(a_list, b_list, strict=True))
+        pairs = list(pair_names)
         if not st.any():  # all accepted: no counters
             return UpdateBatch(KIND_BEARING, pairs, nu, s, None)
         return self._record_runs(KIND_BEARING, pairs, nu, s, st, "bearing_deferred_nonlinear")
+
+    def _bearing_indices(self, a: tuple[str, ...], b: tuple[str, ...]) -> tuple[
+            NDArray[np.int64], NDArray[np.int64], NDArray[np.int64], tuple[tuple[str, str], ...]]:
+        """Position-slice starts of a and b, a's azimuth state (-1: none) and the (a, b) pairs of a
+        bearing batch; those of the last batch when its names are the same (kept until the
+        layout changes: the kernels only read them)."""
+        if self._bearing_index is None or self._bearing_names != (a, b):
+            m = len(a)
+            self._bearing_names = (a, b)
+            self._bearing_index = (np.fromiter(map(self._pos0.__getitem__, a), dtype=np.int64, count=m),
+                                   np.fromiter(map(self._pos0.__getitem__, b), dtype=np.int64, count=m),
+                                   np.fromiter(map(self._az_index.get, a, repeat(-1)), dtype=np.int64, count=m),
+                                   tuple(zip(a, b, strict=True)))
+        return self._bearing_index
 
     def _record_runs(self, kind: str, vehicles: Sequence[tuple[str, ...]], nu: F64, s: F64, st: NDArray[np.int64],
                      deferred_key: str) -> Updates:
