@@ -976,13 +976,22 @@ class SolutionRunner:
         (:attr:`Event.uwb_source`) and filtered in one :meth:`ClusterEkf.update_uwb_run`
         call; the update log gets each record with its event's time tag and faulty flag."""
         n = len(events)
+        last_heard = self.last_heard
+        e0 = ei
+        while ei < n and events[ei].kind == "uwb" and events[ei].t_s <= t_out + 1e-9:
+            ei += 1
+        src0 = events[e0].uwb_source if ei > e0 else None
+        if src0 is not None and all(ev.uwb_source is src0 for ev in events[e0 + 1:ei]):
+            # the usual run: one range per event, all from one chunk's columns, gathered at once
+            t_filter, infos = self._uwb_run_columns(events[e0:ei], src0, t_filter)
+            return ei, t_filter, infos
+        ei = e0
         dts: list[float] = []
         t_ev: list[float] = []
         a: list[str] = []
         b: list[str] = []
         z: list[float] = []
         bad: list[bool] = []  # NLOS or an injected fault (what _faulty_flags says of a UWB event)
-        last_heard = self.last_heard
         while ei < n and events[ei].kind == "uwb" and events[ei].t_s <= t_out + 1e-9:
             ev = events[ei]
             ei += 1
@@ -1006,15 +1015,43 @@ class SolutionRunner:
                 t_ev.append(ev.t_s)
                 dts.append(max(0.0, ev.t_s - t_filter) if i == 0 else 0.0)  # (no prediction within an event)
             t_filter = max(t_filter, ev.t_s)
-        event_of, infos = self.ekf.update_uwb_run(dts, a, b, np.array(z, dtype=float))
+        return ei, t_filter, self._uwb_updates(dts, a, b, np.array(z, dtype=float), bad, t_ev)
+
+    def _uwb_run_columns(self, run: Sequence[Event], src: UwbRanges, t_filter: float) -> tuple[float, Updates]:
+        """:meth:`_uwb_run` of events that each hold one range of the same ``src`` (what the
+        exchange delivers within a chunk): the same ranges, time tags, predictions and flags,
+        gathered from the columns with one index array. Returns (filter time, records)."""
+        idx = [ev.uwb_index for ev in run]
+        t_ev = [ev.t_s for ev in run]
+        a = [src.a[k] for k in idx]
+        b = [src.b[k] for k in idx]
+        last_heard = self.last_heard
+        dts: list[float] = []
+        for ak, bk, t in zip(a, b, t_ev, strict=True):
+            last_heard[ak] = t
+            last_heard[bk] = t
+            dts.append(max(0.0, t - t_filter))
+            t_filter = max(t_filter, t)
+        ix = np.array(idx, dtype=np.intp)
+        fault = src.errors_m.get("fault")
+        bad = ~np.asarray(src.los, dtype=bool)[ix]
+        if fault is not None:
+            bad |= np.asarray(fault, dtype=float)[ix] != 0.0
+        return t_filter, self._uwb_updates(dts, a, b, np.array(src.range_m[ix], dtype=float), bad.tolist(), t_ev)
+
+    def _uwb_updates(self, dts: list[float], a: list[str], b: list[str], z: np.ndarray, bad: list[bool],
+                     t_ev: list[float]) -> Updates:
+        """One :meth:`ClusterEkf.update_uwb_run` of a run's ranges; the update log gets each
+        record with its event's time tag and faulty flag (``bad``: NLOS or an injected fault)."""
+        event_of, infos = self.ekf.update_uwb_run(dts, a, b, z)
         if not len(infos):
-            return ei, t_filter, Updates()
+            return Updates()
         if any(bad):
             faulty = [bad[e] and info_kind == KIND_UWB for e, info_kind in zip(event_of, _kinds(infos), strict=True)]
         else:
             faulty = [False] * len(infos)
         self.rec.log.add_records(np.array(t_ev)[event_of], infos, faulty)
-        return ei, t_filter, Updates([infos])
+        return Updates([infos])
 
     def finish(self) -> SolutionRecord:
         self.rec.counters = dict(self.ekf.counters)
