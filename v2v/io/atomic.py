@@ -14,8 +14,24 @@ from pathlib import Path
 from typing import Any
 
 
+def umask() -> int:
+    """The process's file-mode creation mask, read without changing it where Linux tells it
+    (``/proc/self/status``); elsewhere set and restored at once."""
+    try:
+        with open("/proc/self/status", encoding="ascii") as f:
+            for line in f:
+                if line.startswith("Umask:"):
+                    return int(line.split()[1], 8)
+    except (OSError, ValueError, IndexError):
+        pass
+    mask = os.umask(0o022)
+    os.umask(mask)
+    return mask
+
+
 def atomic_write(path: Path, writer: Callable[[Path], None]) -> None:
-    """Call ``writer(tmp_path)`` and rename the result to ``path``."""
+    """Call ``writer(tmp_path)`` and rename the result to ``path``, with the mode a plain
+    ``open`` would give it (``0o666`` less the umask: ``mkstemp`` makes its files private)."""
     path = Path(path)
     path.parent.mkdir(parents=True, exist_ok=True)
     fd, tmp = tempfile.mkstemp(prefix=f".{path.name}.", suffix=".tmp", dir=path.parent)
@@ -23,6 +39,7 @@ def atomic_write(path: Path, writer: Callable[[Path], None]) -> None:
     tmp_path = Path(tmp)
     try:
         writer(tmp_path)
+        os.chmod(tmp_path, 0o666 & ~umask())
         os.replace(tmp_path, path)
     except BaseException:
         tmp_path.unlink(missing_ok=True)
@@ -106,6 +123,7 @@ class RunFolder:
         if exc_type is not None:
             shutil.rmtree(self.staging, ignore_errors=True)
             return
+        os.chmod(self.staging, 0o777 & ~umask())  # the mode mkdir would give (mkdtemp's is private)
         if self.final.exists():
             old = self.final.with_name(f".{self.final.name}.old")
             shutil.rmtree(old, ignore_errors=True)
