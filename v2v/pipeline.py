@@ -646,29 +646,35 @@ class EpochBlock:
     lead_azimuth_err: float | None
 
     @property
-    def keys(self) -> tuple[str, ...]:
-        """The rows' keys, in order (the frame's columns)."""
-        return (("t_s", "solution", "vehicle", "initialized", *EPOCH_COLUMNS, "true_lane_index", "lead_lane_index",
-                 "lane_width_m", *self.count_keys, "integrity_available")
-                + (("azimuth_err_rad",) if self.azimuth_err is not None else ())
-                + (("lead_azimuth_err_rad",) if self.lead_azimuth_err is not None else ()))
+    def columns(self) -> tuple[tuple[str, ...], bool, bool]:
+        """What decides the rows' keys (the frame's columns): the count keys and whether the
+        azimuth errors are there."""
+        return self.count_keys, self.azimuth_err is not None, self.lead_azimuth_err is not None
 
     def rows(self) -> list[dict[str, Any]]:
-        """The epoch's rows as :func:`_epoch_record` builds dict rows (same keys, order and values)."""
+        """The epoch's rows as dicts (:func:`_vehicle_row`)."""
         nums, counts = self.nums.tolist(), self.counts.tolist()
-        rows = []
-        for k, v in enumerate(self.vehicles):
-            row = {"t_s": self.t_s, "solution": self.solution, "vehicle": v, "initialized": self.initialized[k],
-                   **dict(zip(EPOCH_COLUMNS, nums[k], strict=True)),
-                   "true_lane_index": self.true_lane[k], "lead_lane_index": self.lead_lane,
-                   "lane_width_m": self.lane_width[k], **dict(zip(self.count_keys, counts[k], strict=True)),
-                   "integrity_available": self.integrity[k]}
-            if self.azimuth_err is not None:
-                row["azimuth_err_rad"] = self.azimuth_err[k]
-            if self.lead_azimuth_err is not None:
-                row["lead_azimuth_err_rad"] = self.lead_azimuth_err
-            rows.append(row)
-        return rows
+        az = self.azimuth_err
+        return [_vehicle_row(self.t_s, self.solution, v, self.initialized[k], nums[k], self.true_lane[k], self.lead_lane,
+                             self.lane_width[k], self.count_keys, counts[k], self.integrity[k],
+                             None if az is None else az[k], self.lead_azimuth_err)
+                for k, v in enumerate(self.vehicles)]
+
+
+def _vehicle_row(t_s: float, solution: str, vehicle: str, initialized: bool, nums: Sequence[float], true_lane: int,
+                 lead_lane: int, lane_width: float, count_keys: Sequence[str], counts: Sequence[int], integrity: bool,
+                 azimuth_err: float | None, lead_azimuth_err: float | None) -> dict[str, Any]:
+    """One epoch row of a vehicle in the filter, keys in column order (``EPOCH_COLUMNS`` the
+    numbers of :func:`v2v.metrics.errors.epoch_errors`; an azimuth error only where given)."""
+    row = {"t_s": t_s, "solution": solution, "vehicle": vehicle, "initialized": initialized,
+           **dict(zip(EPOCH_COLUMNS, nums, strict=True)),
+           "true_lane_index": true_lane, "lead_lane_index": lead_lane, "lane_width_m": lane_width,
+           **dict(zip(count_keys, counts, strict=True)), "integrity_available": integrity}
+    if azimuth_err is not None:
+        row["azimuth_err_rad"] = azimuth_err
+    if lead_azimuth_err is not None:
+        row["lead_azimuth_err_rad"] = lead_azimuth_err
+    return row
 
 
 def _flat_rows(epochs: Sequence[EpochBlock | list[dict[str, Any]]]) -> list[dict[str, Any]]:
@@ -765,7 +771,8 @@ class SolutionRecord:
         if not epochs:
             return None
         first = epochs[0]
-        if isinstance(first, EpochBlock) and all(isinstance(e, EpochBlock) and e.keys == first.keys for e in epochs):
+        if isinstance(first, EpochBlock) and all(isinstance(e, EpochBlock) and e.columns == first.columns
+                                                 for e in epochs):
             return _blocks_frame(epochs)  # type: ignore[arg-type]
         rows = _flat_rows(epochs)
         return pd.DataFrame(rows) if rows else None
@@ -985,16 +992,13 @@ class SolutionRunner:
             # the usual run: one range per event, all from one chunk's columns, gathered at once
             t_filter, infos = self._uwb_run_columns(events[e0:ei], src0, t_filter)
             return ei, t_filter, infos
-        ei = e0
         dts: list[float] = []
         t_ev: list[float] = []
         a: list[str] = []
         b: list[str] = []
         z: list[float] = []
         bad: list[bool] = []  # NLOS or an injected fault (what _faulty_flags says of a UWB event)
-        while ei < n and events[ei].kind == "uwb" and events[ei].t_s <= t_out + 1e-9:
-            ev = events[ei]
-            ei += 1
+        for ev in events[e0:ei]:
             src: UwbRanges | None = ev.uwb_source
             ks: tuple[int, ...]
             if src is not None:  # one range of a chunk's columns (what the exchange delivers)
@@ -1179,21 +1183,16 @@ def _epoch_record(name: str, t_s: float, ekf: ClusterEkf, step: TrafficStep, lea
         if st is None:
             continue
         if v not in lay.vehicles:  # left the cluster (as the lead sees it): a row without an estimate
-            rows.append({"t_s": t_s, "solution": name, "vehicle": v, "initialized": False})
+            row: dict[str, Any] = {"t_s": t_s, "solution": name, "vehicle": v, "initialized": False}
+            if lead_az is not None:
+                row["lead_azimuth_err_rad"] = lead_az
+            rows.append(row)
             continue
         c = counts.get(v, {})
-        row = {"t_s": t_s, "solution": name, "vehicle": v, "initialized": ekf.is_initialized(v),
-               **dict(zip(EPOCH_COLUMNS, num[v], strict=True)),
-               "true_lane_index": st.lane_index, "lead_lane_index": lead_st.lane_index, "lane_width_m": st.lane_width_m}
-        for key in count_keys:
-            row[key] = c.get(key, 0)
-        row["integrity_available"] = bool(integrity.get(v, False))
-        if lay.has("azimuth", v):
-            row["azimuth_err_rad"] = _azimuth_err(ekf, v, st)
-        rows.append(row)
-    if lead_az is not None:
-        for r in rows:
-            r["lead_azimuth_err_rad"] = lead_az
+        rows.append(_vehicle_row(t_s, name, v, ekf.is_initialized(v), num[v], st.lane_index, lead_st.lane_index,
+                                 st.lane_width_m, count_keys, [c.get(key, 0) for key in count_keys],
+                                 bool(integrity.get(v, False)),
+                                 _azimuth_err(ekf, v, st) if lay.has("azimuth", v) else None, lead_az))
     return rows
 
 

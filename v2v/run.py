@@ -580,10 +580,10 @@ def _run_scenario(scenario: Scenario, out_dir: Path, *, quiet: bool, replay: boo
                         break  # every cluster vehicle has arrived
                     t_end = raw[-1].t_s
                     bar.update(1)
-                    if len(raw) >= _CONVERT_STEPS:
+                    cut = t_end >= next_cut - 1e-9
+                    if cut or len(raw) >= _CONVERT_STEPS:
                         add_raw()
-                    if t_end >= next_cut - 1e-9:
-                        add_raw()
+                    if cut:
                         timing["traffic"] += time.perf_counter() - t0
                         process(final=False)
                         truth.flush()  # one row group per chunk: memory O(chunk), not O(10 000 rows)
@@ -958,7 +958,7 @@ def _log_truth_and_links(logger, steps, uwb, bearings, sky_every: dict[int, Any]
 
 
 def _epoch_logger(logger, georef: GeoReference, timing: dict[str, float]):
-    """Callback logging a chunk of one solution's epoch rows (the frame of ``take_rows``) to the
+    """Callback logging a chunk of one solution's epoch rows (the frame of ``take_frame``) to the
     replay: each epoch's estimates of the initialized vehicles (net XY, around the lead's true
     antenna at that epoch, ``truth_at``) and their errors, in one :meth:`log_epochs` call; its
     time is added to ``timing["replay"]``."""

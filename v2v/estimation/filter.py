@@ -1659,10 +1659,9 @@ class ClusterEkf(ClusterFilterBase):
         self._drift = {v: lay.drift(v) for v in lay.vehicles}
         self._last_batch: _GnssBatch | None = None
         self._az_index = {v: lay.azimuth(v) for v in lay.azimuth_vehicles}
-        # the last bearing batch's names and their kernel indices (the same every epoch of a steady cluster)
-        self._bearing_names: tuple[tuple[str, ...], tuple[str, ...]] | None = None
-        self._bearing_index: tuple[NDArray[np.int64], NDArray[np.int64], NDArray[np.int64],
-                                   tuple[tuple[str, str], ...]] | None = None
+        # the last bearing batch's (a, b) names and their kernel indices (the same every epoch of a steady cluster)
+        self._bearing_cache: tuple[tuple[tuple[str, ...], tuple[str, ...]], tuple[
+            NDArray[np.int64], NDArray[np.int64], NDArray[np.int64], tuple[tuple[str, str], ...]]] | None = None
         pc = self.config.process  # kernels.predict_all's parameter vectors
         self._vpar = np.array([pc.vel_tau_s, pc.vel_sigma_horizontal_mps, pc.vel_sigma_vertical_mps, pc.drift_tau_s,
                                pc.drift_sigma_mps, pc.clock_bias_psd_m2ps])
@@ -1841,14 +1840,13 @@ class ClusterEkf(ClusterFilterBase):
         """Position-slice starts of a and b, a's azimuth state (-1: none) and the (a, b) pairs of a
         bearing batch; those of the last batch when its names are the same (kept until the
         layout changes: the kernels only read them)."""
-        if self._bearing_index is None or self._bearing_names != (a, b):
+        if self._bearing_cache is None or self._bearing_cache[0] != (a, b):
             m = len(a)
-            self._bearing_names = (a, b)
-            self._bearing_index = (np.fromiter(map(self._pos0.__getitem__, a), dtype=np.int64, count=m),
-                                   np.fromiter(map(self._pos0.__getitem__, b), dtype=np.int64, count=m),
-                                   np.fromiter(map(self._az_index.get, a, repeat(-1)), dtype=np.int64, count=m),
-                                   tuple(zip(a, b, strict=True)))
-        return self._bearing_index
+            self._bearing_cache = ((a, b), (np.fromiter(map(self._pos0.__getitem__, a), dtype=np.int64, count=m),
+                                            np.fromiter(map(self._pos0.__getitem__, b), dtype=np.int64, count=m),
+                                            np.fromiter(map(self._az_index.get, a, repeat(-1)), dtype=np.int64, count=m),
+                                            tuple(zip(a, b, strict=True))))
+        return self._bearing_cache[1]
 
     def _record_runs(self, kind: str, vehicles: Sequence[tuple[str, ...]], nu: F64, s: F64, st: NDArray[np.int64],
                      deferred_key: str) -> Updates:

@@ -992,22 +992,15 @@ class RerunReplayLogger(ReplayLogger):
         """Rows ``values[j]`` of ``vehicle_ids[j]`` at ``times[j]``, sorted into each vehicle's
         buffer (in order; a vehicle's first row logs its series' styles)."""
         errors = self._errors
-        first = dict.fromkeys(vehicle_ids)  # vehicles by first appearance
-        if len(first) == len(vehicle_ids):  # one row per vehicle (one epoch)
-            for j, v in enumerate(vehicle_ids):
-                buf = errors.get((solution, v)) or self._error_rows(solution, v)
-                buf.times.append(times[j : j + 1])
-                buf.rows.append(values[j : j + 1])
-        else:
-            code = {v: k for k, v in enumerate(first)}
-            of = np.fromiter(map(code.__getitem__, vehicle_ids), dtype=np.intp, count=len(vehicle_ids))
-            order = np.argsort(of, kind="stable")
-            bounds = np.searchsorted(of[order], np.arange(len(first) + 1))
-            for k, v in enumerate(first):
-                buf = errors.get((solution, v)) or self._error_rows(solution, v)
-                rows = order[bounds[k] : bounds[k + 1]]
-                buf.times.append(times[rows])
-                buf.rows.append(values[rows])
+        code = {v: k for k, v in enumerate(dict.fromkeys(vehicle_ids))}  # vehicles by first appearance
+        of = np.fromiter(map(code.__getitem__, vehicle_ids), dtype=np.intp, count=len(vehicle_ids))
+        order = np.argsort(of, kind="stable")
+        bounds = np.searchsorted(of[order], np.arange(len(code) + 1))
+        for k, v in enumerate(code):
+            buf = errors.get((solution, v)) or self._error_rows(solution, v)
+            rows = order[bounds[k] : bounds[k + 1]]
+            buf.times.append(times[rows])
+            buf.rows.append(values[rows])
         self._buffered_rows += len(vehicle_ids)
         if self._buffered_rows >= self.params.flush_rows:
             self._flush_series()
