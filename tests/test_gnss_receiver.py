@@ -27,7 +27,7 @@ from v2v.sensors.gnss.errors import (
     pll_jitter_m,
 )
 from v2v.sensors.gnss.receiver import ERROR_KEYS, GnssReceiverConfig, GnssSynthesizer
-from v2v.sensors.gnss.spp import SppConfig, SppStatus, solve_spp
+from v2v.sensors.gnss.spp import SppChain, SppConfig, SppStatus, solve_spp
 from v2v.sensors.gnss.time import utc_to_gps_s
 from v2v.sensors.measurements import GPS_L1_WAVELENGTH_M, SPEED_OF_LIGHT_MPS
 from v2v.traffic.snapshot import TrafficStep, VehicleState
@@ -761,3 +761,37 @@ def test_batched_synthesis_equals_step_by_step(dt_s, sky):
                     assert x[key] == y[key], key
             n += 1
     assert n > 100
+
+
+def test_spp_chain_batch_equals_epoch_by_epoch(eph):
+    """The lead's base (paper eq. 7) is solved for a whole delivery of epochs at once
+    (SppChain.many, one compiled call); each epoch must get what one call per epoch gives
+    (spp_position from the last valid position), bit for bit, also across epochs with too few
+    satellites (no solution: the last valid position is kept, None before the first). Without
+    errors beyond the receiver clock (and no corrections) each valid position is the truth, as in
+    test_spp_noise_free_is_exact."""
+    syn = synth(eph, replace(GnssErrorConfig.ideal(), clock=ClockConfig()), seed=3)
+    cfg = SppConfig(correct_iono=False, correct_tropo=False)
+    eps, truth = [], []
+    for k in range(40):
+        st = vstate("a", 0.1 * k, 0.0, vel_enu=(20.0, 5.0, 0.0))
+        ep = syn.epoch(0.1 * k, {"a": st})["a"]
+        if k in (0, 1, 17, 18, 30):  # too few satellites: 3 rows
+            ep = ep.select(np.arange(ep.n) < 3)
+        eps.append(ep)
+        truth.append(st.ecef_m)
+    one = SppChain(gps_start_s=GPS0, config=cfg)
+    a = [one(ep) for ep in eps]
+    a = [None if x is None else x.copy() for x in a]
+    for split in (len(eps), 11):  # one delivery; two, the second starting from the first's last position
+        chain = SppChain(gps_start_s=GPS0, config=cfg)
+        b = chain.many(eps[:split]) + chain.many(eps[split:])
+        assert a[:2] == [None, None] and b[:2] == [None, None]
+        for k in range(2, len(eps)):
+            assert b[k] is not None and np.array_equal(a[k], b[k]), k
+        assert np.array_equal(chain.x, a[-1])
+    for k in (17, 18):
+        assert np.array_equal(a[k], a[16])  # no solution: the last valid position
+    errs = [np.linalg.norm(a[k] - truth[k]) for k in range(2, len(eps)) if k not in (17, 18, 30)]
+    print(f"SPP chain: 3-D error max {max(errs) * 1e3:.4f} mm over {len(errs)} epochs")
+    assert max(errs) < 1e-3

@@ -354,6 +354,7 @@ class ExchangeStream:
     def _events(self, delivered: list[Message]) -> list[Event]:
         lead_id = self.exchange.lead_id
         events: list[Event] = []
+        based: list[Event] = []  # the GNSS events with the lead's epoch, in order
         j = 0
         while j < len(delivered):
             m = delivered[j]
@@ -363,9 +364,10 @@ class ExchangeStream:
             group = delivered[j:k]
             if m.kind == "gnss":
                 eps = {g.sender: g.payload for g in group}
-                base = self.lead_base(eps[lead_id]) if lead_id in eps else None
                 bad, nlos = _bad_prns(eps)
-                events.append(Event(m.t_s, "gnss", gnss=eps, lead_base_ecef_m=base, bad_prns=bad, nlos_prns=nlos))
+                events.append(Event(m.t_s, "gnss", gnss=eps, bad_prns=bad, nlos_prns=nlos))
+                if lead_id in eps:
+                    based.append(events[-1])
             elif m.kind == "uwb":
                 for g in group:
                     src, idx = g.payload
@@ -380,6 +382,14 @@ class ExchangeStream:
                     parts = [g.payload[0].take(g.payload[1]) for g in group]
                     events.append(Event(m.t_s, "bearing", bearings=_concat_bearings(parts)))
             j = k
+        # the lead's bases (paper eq. 7), each from the last valid one: in one batch when the
+        # callable has one (SppChain.many: the same positions as one call per epoch)
+        if based:
+            lead_eps = [ev.gnss[lead_id] for ev in based]  # type: ignore[index]
+            many = getattr(self.lead_base, "many", None)
+            bases = many(lead_eps) if many is not None else [self.lead_base(ep) for ep in lead_eps]
+            for ev, base in zip(based, bases, strict=True):
+                ev.lead_base_ecef_m = base
         return events
 
 

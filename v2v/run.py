@@ -340,7 +340,7 @@ def _run_scenario(scenario: Scenario, out_dir: Path, *, quiet: bool, replay: boo
         build_uwb,
         child_seeds,
     )
-    from v2v.sensors.gnss.spp import spp_position
+    from v2v.sensors.gnss.spp import SppChain
     from v2v.sensors.gnss.time import utc_to_gps_s
     from v2v.sensors.uwb import concat_ranges
     from v2v.traffic.sumo import NetFiles, RawStep, SumoSimulation
@@ -435,13 +435,7 @@ def _run_scenario(scenario: Scenario, out_dir: Path, *, quiet: bool, replay: boo
                 members = [f"{cluster.name}.{i}" for i in range(cluster.vehicles)]
                 others = [v for v in members if v != lead]
                 exch = V2VExchange(scenario.exchange, lead, np.random.default_rng(seeds[STREAM_EXCHANGE].spawn(ci + 1)[ci]))
-                base_state: dict[str, Any] = {"x": None}
-
-                def lead_base(ep: GnssEpoch, _s=base_state) -> np.ndarray | None:
-                    x = spp_position(ep, x0_ecef_m=_s["x"], gps_start_s=gps_start)  # (spp_from_epoch's, if valid)
-                    if x is not None:
-                        _s["x"] = x
-                    return _s["x"]
+                lead_base = SppChain(gps_start_s=gps_start)  # each epoch's SPP from the last valid one
 
                 dropped = None
                 if scenario.faults:

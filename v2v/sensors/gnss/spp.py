@@ -396,3 +396,82 @@ def spp_position(epoch: GnssEpoch, *, config: SppConfig | None = None, x0_ecef_m
     _, _, _, (code, _, x, *_) = _solve(epoch.sv_pos_ecef_m, epoch.pseudorange_m, epoch.sv_clock_m, cfg, x0_ecef_m,
                                       gps_start_s + epoch.t_s)
     return x[:3].copy() if _VALID[code] else None
+
+
+@njit(**_JIT)
+def _spp_chain_kernel(sv_cat, y_cat, finite_cat, row0, t_gps, x_prior, sigma0_m, elevation_weighting,
+                      alpha_thresholds, exclude, max_iter, tol_m, iono, tropo, klob_alpha,
+                      klob_beta):  # pragma: no cover - compiled
+    """:func:`_spp_kernel` of epochs ``k`` (rows ``row0[k]:row0[k+1]`` of the concatenated
+    inputs) one after another, each from the last valid position before it (``x_prior`` for
+    the first). Returns ``(positions (K, 3), valid (K,), the last valid position)``; an
+    invalid epoch's row is left NaN."""
+    k_n = row0.shape[0] - 1
+    pos = np.full((k_n, 3), np.nan)
+    ok = np.zeros(k_n, dtype=np.bool_)
+    xp = x_prior.copy()
+    for k in range(k_n):
+        a, b = row0[k], row0[k + 1]
+        code, _, x, _, _, _, _, _ = _spp_kernel(
+            np.ascontiguousarray(sv_cat[a:b]), y_cat[a:b].copy(), finite_cat[a:b].copy(), xp, sigma0_m,
+            elevation_weighting, alpha_thresholds, exclude, max_iter, tol_m, t_gps[k], iono, tropo, klob_alpha,
+            klob_beta)
+        if code <= 1:  # (_VALID)
+            xp = x[:3].copy()
+            pos[k] = xp
+            ok[k] = True
+    return pos, ok
+
+
+class SppChain:
+    """The standalone positions of one receiver's successive epochs, each solved from the
+    last valid one (:func:`spp_position` with ``x0_ecef_m`` the previous valid position):
+    the lead's base of every GNSS epoch (paper eq. 7).
+
+    ``chain(epoch)`` returns the epoch's position if valid, else the last valid one (None
+    before any); :meth:`many` does the same for a list of epochs in one compiled call, with
+    the same results as calling the chain on each in turn (the same kernel, the same priors).
+    """
+
+    def __init__(self, *, gps_start_s: float = 0.0, config: SppConfig | None = None,
+                 x0_ecef_m: ArrayLike | None = None) -> None:
+        self.config = config or _DEFAULT_CONFIG
+        self.gps_start_s = gps_start_s
+        self.x: F64 | None = None if x0_ecef_m is None else np.asarray(x0_ecef_m, dtype=float).reshape(3).copy()
+
+    def __call__(self, epoch: GnssEpoch) -> F64 | None:
+        x = spp_position(epoch, config=self.config, x0_ecef_m=self.x, gps_start_s=self.gps_start_s)
+        if x is not None:
+            self.x = x
+        return self.x
+
+    def many(self, epochs: list[GnssEpoch]) -> list[F64 | None]:
+        """``[self(ep) for ep in epochs]`` in one kernel call (a returned position is an
+        array of its own; an invalid epoch's entry is the last valid position before it)."""
+        if len(epochs) < 2:
+            return [self(ep) for ep in epochs]
+        cfg = self.config
+        counts = [len(ep.pseudorange_m) for ep in epochs]
+        row0 = np.zeros(len(epochs) + 1, dtype=np.int64)
+        np.cumsum(counts, out=row0[1:])
+        sv = np.concatenate([np.asarray(ep.sv_pos_ecef_m, dtype=float).reshape(-1, 3) for ep in epochs])
+        # (elementwise, as _solve forms each epoch's y_all and finite rows)
+        y = np.concatenate([np.asarray(ep.pseudorange_m, dtype=float).reshape(-1) for ep in epochs]) \
+            + np.concatenate([np.asarray(ep.sv_clock_m, dtype=float).reshape(-1) for ep in epochs])
+        finite = np.all(np.isfinite(sv), axis=1) & np.isfinite(y)
+        t_gps = np.array([self.gps_start_s + ep.t_s for ep in epochs], dtype=float)
+        x_prior = np.zeros(3) if self.x is None else self.x
+        pos, ok = _spp_chain_kernel(
+            sv, y, finite, row0, t_gps, x_prior, float(cfg.sigma0_m), bool(cfg.elevation_weighting),
+            _chi2_thresholds(cfg.alpha, max(counts)), bool(cfg.exclude), int(cfg.max_iter), float(cfg.tol_m),
+            bool(cfg.correct_iono), bool(cfg.correct_tropo), np.asarray(cfg.klobuchar_alpha, dtype=float),
+            np.asarray(cfg.klobuchar_beta, dtype=float))
+        out: list[F64 | None] = []
+        cur = self.x
+        for k, valid in enumerate(ok.tolist()):
+            if valid:
+                cur = pos[k].copy()
+            out.append(cur)
+        if ok.any():
+            self.x = cur
+        return out
