@@ -34,6 +34,7 @@ from v2v.viz.rerun_logger import (  # noqa: E402
     ellipse_scale,
     extrude_footprints,
     send_blueprint_chunks,
+    series_style_chunks,
     strips3d_arrow,
 )
 
@@ -433,6 +434,36 @@ def test_blueprint_chunks_are_what_send_blueprint_stores(tmp_path):
                              timeout=60).stdout
         lines = [ln for ln in out.splitlines() if ln.startswith("BlueprintActivationCommand")]
         assert len(lines) == 1 and "make_active: true, make_default: true" in lines[0], (name, lines)
+
+
+def test_series_style_chunks_are_what_logging_the_styles_stores(tmp_path):
+    """The cached style chunks of a (solution, vehicle), sent to two recordings (the second
+    from the cache), store what logging each series' style static on its entity stores."""
+    args = ("gps+uwb", "veh.1", (31, 119, 180))
+    series_style_chunks.cache_clear()
+
+    def content(path, send):
+        rec = rr.RecordingStream(application_id="v2v", recording_id="st", send_properties=False)
+        rec.save(path)
+        send(rec)
+        rec.flush()
+        rec.disconnect()
+        out = []
+        for c in RrdReader(path).stream():
+            rb = c.to_record_batch()
+            cols = {n: rb.column(n).to_pylist() for n in rb.schema.names if n != "log_time" and "RowId" not in n}
+            out.append((c.entity_path, c.is_static, repr(sorted(cols.items()))))
+        return sorted(out)
+
+    def log(rec):
+        for series in bp.ERROR_SERIES:
+            rec.log(bp.error_path(args[0], args[1], series), bp.series_style(series, *args), static=True)
+
+    ref = content(tmp_path / "ref.rrd", log)
+    assert len(ref) == len(bp.ERROR_SERIES) and all(static for _, static, _ in ref)
+    for name in ("a.rrd", "b.rrd"):
+        assert content(tmp_path / name, lambda rec: rr.send_chunks(series_style_chunks(*args), recording=rec)) == ref
+    assert series_style_chunks.cache_info().hits == 1
 
 
 def test_each_error_series_is_styled_on_its_entity_and_shown_in_one_view(run):
