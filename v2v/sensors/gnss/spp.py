@@ -404,8 +404,8 @@ def _spp_chain_kernel(sv_cat, y_cat, finite_cat, row0, t_gps, x_prior, sigma0_m,
                       klob_beta):  # pragma: no cover - compiled
     """:func:`_spp_kernel` of epochs ``k`` (rows ``row0[k]:row0[k+1]`` of the concatenated
     inputs) one after another, each from the last valid position before it (``x_prior`` for
-    the first). Returns ``(positions (K, 3), valid (K,), the last valid position)``; an
-    invalid epoch's row is left NaN."""
+    the first). Returns ``(positions (K, 3), valid (K,))``; an invalid epoch's row is left
+    NaN."""
     k_n = row0.shape[0] - 1
     pos = np.full((k_n, 3), np.nan)
     ok = np.zeros(k_n, dtype=np.bool_)
