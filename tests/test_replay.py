@@ -386,17 +386,26 @@ def test_blueprint_is_stored_with_the_views(run):
     assert set(selections) == expected
 
 
-def _blueprint_content(path) -> list[tuple]:
-    """The blueprint store of ``path``: (entity, static, columns) of every chunk, sorted; the
-    wall-clock ``log_time`` stamps and row ids left out."""
+def _store_content(path, blueprint: bool = False) -> list[tuple]:
+    """The recording store of ``path`` (its blueprint store if ``blueprint``): (entity, static,
+    columns) of every chunk, sorted; the wall-clock ``log_time`` stamps and row ids left out."""
     reader = RrdReader(path)
-    (store,) = reader.blueprints()
+    stream = reader.stream(store=reader.blueprints()[0]) if blueprint else reader.stream()
     out = []
-    for c in reader.stream(store=store):
+    for c in stream:
         rb = c.to_record_batch()
         cols = {n: rb.column(n).to_pylist() for n in rb.schema.names if n != "log_time" and "RowId" not in n}
         out.append((c.entity_path, c.is_static, repr(sorted(cols.items()))))
     return sorted(out)
+
+
+def _write_recording(path, send) -> None:
+    """A recording saved to ``path`` with what ``send(rec)`` sends, flushed and closed."""
+    rec = rr.RecordingStream(application_id="v2v", recording_id="test", send_properties=False)
+    rec.save(path)
+    send(rec)
+    rec.flush()
+    rec.disconnect()
 
 
 def test_blueprint_chunks_are_what_send_blueprint_stores(tmp_path):
@@ -409,23 +418,15 @@ def test_blueprint_chunks_are_what_send_blueprint_stores(tmp_path):
 
     args = ("v2v", ("gps", "gps+uwb"), ("veh.1", "veh_2"), ("lead", "veh.1"), True)
     blueprint_chunks.cache_clear()
-
-    def write(path, send):
-        rec = rr.RecordingStream(application_id="v2v", recording_id="bp", send_properties=False)
-        rec.save(path)
-        send(rec)
-        rec.flush()
-        rec.disconnect()
-
-    write(tmp_path / "ref.rrd", lambda rec: rec.send_blueprint(bp.default_blueprint(*args[1:4], show_map=True),
-                                                               make_active=True, make_default=True))
+    _write_recording(tmp_path / "ref.rrd", lambda rec: rec.send_blueprint(
+        bp.default_blueprint(*args[1:4], show_map=True), make_active=True, make_default=True))
     for name in ("a.rrd", "b.rrd"):
-        write(tmp_path / name, lambda rec: send_blueprint_chunks(rec, "v2v", blueprint_chunks(*args)))
+        _write_recording(tmp_path / name, lambda rec: send_blueprint_chunks(rec, "v2v", blueprint_chunks(*args)))
     assert blueprint_chunks.cache_info().hits == 1
-    ref = _blueprint_content(tmp_path / "ref.rrd")
+    ref = _store_content(tmp_path / "ref.rrd", blueprint=True)
     assert len(ref) > 20
-    assert _blueprint_content(tmp_path / "a.rrd") == ref
-    assert _blueprint_content(tmp_path / "b.rrd") == ref
+    assert _store_content(tmp_path / "a.rrd", blueprint=True) == ref
+    assert _store_content(tmp_path / "b.rrd", blueprint=True) == ref
     exe = shutil.which("rerun", path=os.path.dirname(sys.executable))
     if exe is None:
         pytest.skip("no rerun executable beside the interpreter to print the activation command")
@@ -442,27 +443,16 @@ def test_series_style_chunks_are_what_logging_the_styles_stores(tmp_path):
     args = ("gps+uwb", "veh.1", (31, 119, 180))
     series_style_chunks.cache_clear()
 
-    def content(path, send):
-        rec = rr.RecordingStream(application_id="v2v", recording_id="st", send_properties=False)
-        rec.save(path)
-        send(rec)
-        rec.flush()
-        rec.disconnect()
-        out = []
-        for c in RrdReader(path).stream():
-            rb = c.to_record_batch()
-            cols = {n: rb.column(n).to_pylist() for n in rb.schema.names if n != "log_time" and "RowId" not in n}
-            out.append((c.entity_path, c.is_static, repr(sorted(cols.items()))))
-        return sorted(out)
-
     def log(rec):
         for series in bp.ERROR_SERIES:
             rec.log(bp.error_path(args[0], args[1], series), bp.series_style(series, *args), static=True)
 
-    ref = content(tmp_path / "ref.rrd", log)
+    _write_recording(tmp_path / "ref.rrd", log)
+    ref = _store_content(tmp_path / "ref.rrd")
     assert len(ref) == len(bp.ERROR_SERIES) and all(static for _, static, _ in ref)
     for name in ("a.rrd", "b.rrd"):
-        assert content(tmp_path / name, lambda rec: rr.send_chunks(series_style_chunks(*args), recording=rec)) == ref
+        _write_recording(tmp_path / name, lambda rec: rr.send_chunks(series_style_chunks(*args), recording=rec))
+        assert _store_content(tmp_path / name) == ref
     assert series_style_chunks.cache_info().hits == 1
 
 
