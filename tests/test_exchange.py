@@ -62,7 +62,7 @@ def test_bearings_travel_as_one_packet_per_vehicle_and_time_tag():
     t = [0.1, 0.1, 0.1, 0.2, 0.1, 0.2, 0.2, 0.2, 0.1]
     a = ["a", "b", "a", "lead", "lead", "a", "b", "a", "b"]
     b = ["b", "a", "lead", "a", "b", "lead", "lead", "b", "lead"]
-    xs = ExchangeStream(V2VExchange(ExchangeConfig(), "lead", np.random.default_rng(0)), lambda ep: None)
+    xs = ExchangeStream(V2VExchange(ExchangeConfig(), "lead", np.random.default_rng(0)), lambda eps: [None] * len(eps))
     xs.add_bearings(_bearings(t, a, b))
     packets = [(m.t_s, m.sender, list(m.payload[1])) for _, _, _, m in xs._msgs]
     assert packets == [(0.1, "a", [0, 2]), (0.1, "b", [1, 8]), (0.2, "lead", [3]), (0.1, "lead", [4]),
@@ -83,7 +83,7 @@ def test_lost_bearing_packet_takes_all_its_bearings():
     from v2v.pipeline import ExchangeStream
 
     xs = ExchangeStream(V2VExchange(ExchangeConfig(loss_probability=1.0), "lead", np.random.default_rng(0)),
-                        lambda ep: None)
+                        lambda eps: [None] * len(eps))
     xs.add_bearings(_bearings([0.1, 0.1, 0.1], ["a", "lead", "a"], ["lead", "a", "b"]))
     xs.add_output_time(0.1)
     (ev,) = xs.advance(np.inf, final=True)

@@ -246,12 +246,16 @@ class ExchangeStream:
     the events that no later delivery can precede. Messages still in flight (latency) carry
     over to the next chunk. The sequence of sends, deliveries, loss draws and events is the
     one of a single whole-run call, so the result does not depend on the chunk length.
+
+    ``lead_bases``: the lead's base positions (paper eq. 7) of its delivered epochs, given in
+    delivery order, one call per delivery (:meth:`v2v.sensors.gnss.spp.SppChain.many`); None
+    where there is none.
     """
 
-    def __init__(self, exchange: V2VExchange, lead_base: Callable[[GnssEpoch], np.ndarray | None],
+    def __init__(self, exchange: V2VExchange, lead_bases: Callable[[list[GnssEpoch]], list[np.ndarray | None]],
                  dropped: Callable[[str, float], bool] | None = None):
         self.exchange = exchange
-        self.lead_base = lead_base
+        self.lead_bases = lead_bases
         self.dropped = dropped
         self._msgs: list[tuple[float, int, int, Message]] = []  # (t_s, rank, seq, message), unsent
         self._sorted = True
@@ -382,12 +386,8 @@ class ExchangeStream:
                     parts = [g.payload[0].take(g.payload[1]) for g in group]
                     events.append(Event(m.t_s, "bearing", bearings=_concat_bearings(parts)))
             j = k
-        # the lead's bases (paper eq. 7), each from the last valid one: in one batch when the
-        # callable has one (SppChain.many: the same positions as one call per epoch)
-        if based:
-            lead_eps = [ev.gnss[lead_id] for ev in based]  # type: ignore[index]
-            many = getattr(self.lead_base, "many", None)
-            bases = many(lead_eps) if many is not None else [self.lead_base(ep) for ep in lead_eps]
+        if based:  # the lead's bases (paper eq. 7) of the delivery, in one call
+            bases = self.lead_bases([ev.gnss[lead_id] for ev in based])  # type: ignore[index]
             for ev, base in zip(based, bases, strict=True):
                 ev.lead_base_ecef_m = base
         return events
@@ -413,7 +413,7 @@ def _concat_bearings(parts: Sequence[Bearings]) -> Bearings:
 
 
 def exchange_stream(gnss_epochs: Sequence[tuple[float, dict[str, GnssEpoch]]], uwb: UwbRanges | None,
-                    bearings: Bearings | None, exchange: V2VExchange, lead_base: Callable[[GnssEpoch], np.ndarray | None],
+                    bearings: Bearings | None, exchange: V2VExchange, lead_bases: Callable[[list[GnssEpoch]], list[np.ndarray | None]],
                     output_times: Sequence[float],
                     dropped: Callable[[str, float], bool] | None = None) -> tuple[list[Event], list[float]]:
     """Send every measurement through the V2V exchange and return the delivered events
@@ -422,7 +422,7 @@ def exchange_stream(gnss_epochs: Sequence[tuple[float, dict[str, GnssEpoch]]], u
     A UWB range travels with its initiator ``a``; a bearing with its measuring vehicle.
     One whole-run :class:`ExchangeStream`.
     """
-    xs = ExchangeStream(exchange, lead_base, dropped)
+    xs = ExchangeStream(exchange, lead_bases, dropped)
     for t, eps in gnss_epochs:
         xs.add_gnss(t, eps)
     xs.add_uwb(uwb)

@@ -435,7 +435,7 @@ def _run_scenario(scenario: Scenario, out_dir: Path, *, quiet: bool, replay: boo
                 members = [f"{cluster.name}.{i}" for i in range(cluster.vehicles)]
                 others = [v for v in members if v != lead]
                 exch = V2VExchange(scenario.exchange, lead, np.random.default_rng(seeds[STREAM_EXCHANGE].spawn(ci + 1)[ci]))
-                lead_base = SppChain(gps_start_s=gps_start)  # each epoch's SPP from the last valid one
+                lead_bases = SppChain(gps_start_s=gps_start).many  # each epoch's SPP from the last valid one
 
                 dropped = None
                 if scenario.faults:
@@ -455,7 +455,7 @@ def _run_scenario(scenario: Scenario, out_dir: Path, *, quiet: bool, replay: boo
                     keys.append(sol.name if len(scenario.clusters) == 1 else f"{cluster.name}/{sol.name}")
                     parts.append(parts_dir / f"epochs_{ci}_{si}.pkl")
                 clusters.append(_ClusterRun(name=cluster.name, lead=lead, members=members,
-                                            stream=ExchangeStream(exch, lead_base, dropped), runners=runners, keys=keys,
+                                            stream=ExchangeStream(exch, lead_bases, dropped), runners=runners, keys=keys,
                                             parts=parts, events=[], out_times=[], exchange=exch))
 
             window: dict[int, TrafficStep] = {}  # truth steps still needed (by round(t * 1e6))

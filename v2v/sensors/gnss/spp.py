@@ -314,19 +314,30 @@ def _chi2_thresholds(alpha: float, n: int) -> F64:
     return thr
 
 
+def _kernel_rows(sv_pos_ecef_m: ArrayLike, pseudorange_m: ArrayLike,
+                 sv_clock_m: ArrayLike) -> tuple[F64, F64, NDArray[np.bool_]]:
+    """The kernels' rows: satellite positions ``(n, 3)``, pseudoranges with the broadcast
+    satellite clock applied ``(n,)``, and which rows are finite."""
+    sv = np.ascontiguousarray(sv_pos_ecef_m, dtype=float).reshape(-1, 3)
+    y_all = np.asarray(pseudorange_m, dtype=float).reshape(-1) + np.asarray(sv_clock_m, dtype=float).reshape(-1)
+    return sv, y_all, np.all(np.isfinite(sv), axis=1) & np.isfinite(y_all)
+
+
+def _kernel_config(cfg: SppConfig, n_max: int, t_gps: float | F64) -> tuple:
+    """The arguments of :func:`_spp_kernel` (and :func:`_spp_chain_kernel`) after the a priori
+    position, for epochs of at most ``n_max`` satellites at GPS time(s) ``t_gps``."""
+    return (float(cfg.sigma0_m), bool(cfg.elevation_weighting), _chi2_thresholds(cfg.alpha, n_max), bool(cfg.exclude),
+            int(cfg.max_iter), float(cfg.tol_m), t_gps, bool(cfg.correct_iono), bool(cfg.correct_tropo),
+            np.asarray(cfg.klobuchar_alpha, dtype=float), np.asarray(cfg.klobuchar_beta, dtype=float))
+
+
 def _solve(sv_pos_ecef_m: ArrayLike, pseudorange_m: ArrayLike, sv_clock_m: ArrayLike, cfg: SppConfig,
            x0_ecef_m: ArrayLike | None, t_gps_s: float) -> tuple[int, F64, NDArray[np.bool_], tuple]:
     """``(n, a priori position, finite rows, _spp_kernel's outputs)`` of :func:`solve_spp`'s inputs."""
-    sv = np.ascontiguousarray(sv_pos_ecef_m, dtype=float).reshape(-1, 3)
-    y_all = np.asarray(pseudorange_m, dtype=float).reshape(-1) + np.asarray(sv_clock_m, dtype=float).reshape(-1)
+    sv, y_all, finite = _kernel_rows(sv_pos_ecef_m, pseudorange_m, sv_clock_m)
     n = y_all.shape[0]
     x_prior = np.zeros(3) if x0_ecef_m is None else np.asarray(x0_ecef_m, dtype=float).reshape(3)
-    finite = np.all(np.isfinite(sv), axis=1) & np.isfinite(y_all)
-    out = _spp_kernel(
-        sv, y_all, finite, x_prior, float(cfg.sigma0_m), bool(cfg.elevation_weighting), _chi2_thresholds(cfg.alpha, n),
-        bool(cfg.exclude), int(cfg.max_iter), float(cfg.tol_m), float(t_gps_s), bool(cfg.correct_iono),
-        bool(cfg.correct_tropo), np.asarray(cfg.klobuchar_alpha, dtype=float), np.asarray(cfg.klobuchar_beta, dtype=float),
-    )
+    out = _spp_kernel(sv, y_all, finite, x_prior, *_kernel_config(cfg, n, float(t_gps_s)))
     return n, x_prior, finite, out
 
 
@@ -399,13 +410,13 @@ def spp_position(epoch: GnssEpoch, *, config: SppConfig | None = None, x0_ecef_m
 
 
 @njit(**_JIT)
-def _spp_chain_kernel(sv_cat, y_cat, finite_cat, row0, t_gps, x_prior, sigma0_m, elevation_weighting,
-                      alpha_thresholds, exclude, max_iter, tol_m, iono, tropo, klob_alpha,
+def _spp_chain_kernel(sv_cat, y_cat, finite_cat, row0, x_prior, sigma0_m, elevation_weighting, alpha_thresholds,
+                      exclude, max_iter, tol_m, t_gps, iono, tropo, klob_alpha,
                       klob_beta):  # pragma: no cover - compiled
     """:func:`_spp_kernel` of epochs ``k`` (rows ``row0[k]:row0[k+1]`` of the concatenated
-    inputs) one after another, each from the last valid position before it (``x_prior`` for
-    the first). Returns ``(positions (K, 3), valid (K,))``; an invalid epoch's row is left
-    NaN."""
+    inputs, GPS time ``t_gps[k]``) one after another, each from the last valid position before
+    it (``x_prior`` for the first). Returns ``(positions (K, 3), valid (K,))``; an invalid
+    epoch's row is left NaN."""
     k_n = row0.shape[0] - 1
     pos = np.full((k_n, 3), np.nan)
     ok = np.zeros(k_n, dtype=np.bool_)
@@ -450,28 +461,19 @@ class SppChain:
         array of its own; an invalid epoch's entry is the last valid position before it)."""
         if len(epochs) < 2:
             return [self(ep) for ep in epochs]
-        cfg = self.config
         counts = [len(ep.pseudorange_m) for ep in epochs]
         row0 = np.zeros(len(epochs) + 1, dtype=np.int64)
         np.cumsum(counts, out=row0[1:])
-        sv = np.concatenate([np.asarray(ep.sv_pos_ecef_m, dtype=float).reshape(-1, 3) for ep in epochs])
-        # (elementwise, as _solve forms each epoch's y_all and finite rows)
-        y = np.concatenate([np.asarray(ep.pseudorange_m, dtype=float).reshape(-1) for ep in epochs]) \
-            + np.concatenate([np.asarray(ep.sv_clock_m, dtype=float).reshape(-1) for ep in epochs])
-        finite = np.all(np.isfinite(sv), axis=1) & np.isfinite(y)
+        sv, y, finite = _kernel_rows(  # (elementwise: each epoch's rows as _solve forms them)
+            np.concatenate([np.asarray(ep.sv_pos_ecef_m, dtype=float).reshape(-1, 3) for ep in epochs]),
+            np.concatenate([np.asarray(ep.pseudorange_m, dtype=float).reshape(-1) for ep in epochs]),
+            np.concatenate([np.asarray(ep.sv_clock_m, dtype=float).reshape(-1) for ep in epochs]))
         t_gps = np.array([self.gps_start_s + ep.t_s for ep in epochs], dtype=float)
         x_prior = np.zeros(3) if self.x is None else self.x
-        pos, ok = _spp_chain_kernel(
-            sv, y, finite, row0, t_gps, x_prior, float(cfg.sigma0_m), bool(cfg.elevation_weighting),
-            _chi2_thresholds(cfg.alpha, max(counts)), bool(cfg.exclude), int(cfg.max_iter), float(cfg.tol_m),
-            bool(cfg.correct_iono), bool(cfg.correct_tropo), np.asarray(cfg.klobuchar_alpha, dtype=float),
-            np.asarray(cfg.klobuchar_beta, dtype=float))
+        pos, ok = _spp_chain_kernel(sv, y, finite, row0, x_prior, *_kernel_config(self.config, max(counts), t_gps))
         out: list[F64 | None] = []
-        cur = self.x
         for k, valid in enumerate(ok.tolist()):
             if valid:
-                cur = pos[k].copy()
-            out.append(cur)
-        if ok.any():
-            self.x = cur
+                self.x = pos[k].copy()
+            out.append(self.x)
         return out
