@@ -394,6 +394,30 @@ def test_more_workers_than_cores_is_noted(tmp_path, capsys):
     assert "note:" not in capsys.readouterr().err
 
 
+def test_local_cluster_workers_have_one_thread_ignore_ctrl_c_and_come_from_the_fork_server():
+    """The local cluster's contract: each worker process runs one BLAS / OpenMP thread (one
+    run per core), ignores SIGINT (Ctrl-C reaches only the sweep's process, which cancels the
+    study and closes the cluster instead of every worker dying mid-write), and is forked by
+    the fork server, not by this process (so a closed worker leaves with os._exit instead of
+    a full interpreter shutdown)."""
+    import signal
+
+    from v2v.sweep import _open_client
+
+    client, cluster = _open_client(None, 2, "127.0.0.1", 2)
+    try:
+        parents = client.run(os.getppid)
+        sigint = client.run(signal.getsignal, signal.SIGINT)
+        env = {k: client.run(os.environ.get, k) for k in ("OPENBLAS_NUM_THREADS", "OMP_NUM_THREADS")}
+    finally:
+        client.close()
+        cluster.close()
+    assert len(parents) == 2
+    assert all(p != os.getpid() for p in parents.values()) and len(set(parents.values())) == 1
+    assert all(h == signal.SIG_IGN for h in sigint.values())
+    assert all(v == "1" for per_worker in env.values() for v in per_worker.values())
+
+
 def test_huge_seed_count_is_refused_before_the_list_is_built(tmp_path, capsys):
     study = _write(tmp_path / "huge.toml", "seeds = {start = 1, count = 3000000000}\n")
     assert _cli(["sweep", str(study), "--out", str(tmp_path / "o"), "--quiet"]) == 2
