@@ -571,6 +571,7 @@ _LOCAL_CLUSTER_CONFIG = {
 def _open_client(scheduler: str | None, workers: int | None, host: str, n_pending: int):
     """(client, cluster or None). The local cluster: one single-threaded worker process per core."""
     import logging
+    import multiprocessing
     import warnings
 
     import dask
@@ -589,7 +590,10 @@ def _open_client(scheduler: str | None, workers: int | None, host: str, n_pendin
     in_main = threading.current_thread() is threading.main_thread()
     old_sigint = signal.signal(signal.SIGINT, signal.SIG_IGN) if in_main else None
     try:
-        with warnings.catch_warnings(), dask.config.set(_LOCAL_CLUSTER_CONFIG):
+        config = _LOCAL_CLUSTER_CONFIG
+        if "forkserver" not in multiprocessing.get_all_start_methods():  # (Windows: Dask's default, spawn)
+            config = {k: v for k, v in config.items() if k != "distributed.worker.multiprocessing-method"}
+        with warnings.catch_warnings(), dask.config.set(config):
             warnings.filterwarnings("ignore", message="Port .* is already in use")  # the scheduler's HTTP endpoint
             cluster = LocalCluster(n_workers=n, threads_per_worker=1, processes=True, host=host,
                                    dashboard_address=None, silence_logs=logging.ERROR)
