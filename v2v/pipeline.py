@@ -1141,13 +1141,6 @@ _ROW_COUNT_KEYS = tuple(f"{pre}_{kind}" for kind in ("pr", "doppler", "uwb", "be
 _ROW_COUNT_KEYS_PHASE = _ROW_COUNT_KEYS + ("used_phase", "rejected_phase")
 
 
-def _epoch_rows(name: str, t_s: float, ekf: ClusterEkf, step: TrafficStep, lead: str, vehicles: Sequence[str],
-                infos: Sequence[UpdateInfo]) -> list[dict[str, Any]]:
-    """:func:`_epoch_record`'s rows as dicts."""
-    epoch = _epoch_record(name, t_s, ekf, step, lead, vehicles, infos)
-    return epoch.rows() if isinstance(epoch, EpochBlock) else epoch
-
-
 def _epoch_record(name: str, t_s: float, ekf: ClusterEkf, step: TrafficStep, lead: str, vehicles: Sequence[str],
                   infos: Sequence[UpdateInfo]) -> EpochBlock | list[dict[str, Any]]:
     """One row per cluster vehicle at output epoch ``t_s``: truth and estimate relative to the

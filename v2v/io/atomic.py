@@ -29,6 +29,13 @@ def umask() -> int:
     return mask
 
 
+def publish(tmp_path: Path, path: Path) -> None:
+    """Rename the finished temporary file ``tmp_path`` to ``path``, with the mode a plain
+    ``open`` would have given it (``0o666`` less the umask: ``mkstemp`` makes its files private)."""
+    os.chmod(tmp_path, 0o666 & ~umask())
+    os.replace(tmp_path, path)
+
+
 def atomic_write(path: Path, writer: Callable[[Path], None]) -> None:
     """Call ``writer(tmp_path)`` and rename the result to ``path``, with the mode a plain
     ``open`` would give it (``0o666`` less the umask: ``mkstemp`` makes its files private)."""
@@ -39,8 +46,7 @@ def atomic_write(path: Path, writer: Callable[[Path], None]) -> None:
     tmp_path = Path(tmp)
     try:
         writer(tmp_path)
-        os.chmod(tmp_path, 0o666 & ~umask())
-        os.replace(tmp_path, path)
+        publish(tmp_path, path)
     except BaseException:
         tmp_path.unlink(missing_ok=True)
         raise

@@ -75,7 +75,7 @@ from numpy.typing import ArrayLike, NDArray
 from rerun.chunk import Chunk
 
 from v2v.frames import GeoReference
-from v2v.io.atomic import umask
+from v2v.io.atomic import publish
 from v2v.traffic.snapshot import TrafficStep
 from v2v.viz import blueprint as bp
 from v2v.viz.logger import LINK_STATUSES, Footprint, ReplayLogger
@@ -1074,8 +1074,7 @@ class RerunReplayLogger(ReplayLogger):
             send_blueprint_chunks(self._rec, self.params.application_id, chunks)
             self._rec.flush()
             self._rec.disconnect()
-            os.chmod(self._tmp_path, 0o666 & ~umask())  # mkstemp creates 0600: the mode a plain open gives
-            os.replace(self._tmp_path, self.path)
+            publish(self._tmp_path, self.path)
         except BaseException:
             self._discard()
             raise
