@@ -196,22 +196,60 @@ def test_silent_slip_is_rejected_then_reset_without_a_lasting_wrong_fix():
     assert all(r[2] == "fixed" and not r[3] for r in v1 if r[0] >= 30.0)
 
 
+def _worst_state_ratio(a, b) -> float:
+    """``max_i |x_a,i - x_b,i| / (1e-9 (|x_b,i| + sigma_b,i))``: the state difference in units of
+    the 1e-9 bound of tests/test_engines_agree.py."""
+    xb = b.x
+    return float(np.max(np.abs(a.x - xb) / (1e-9 * (np.abs(xb) + np.sqrt(np.abs(np.diag(b.P)))) + 1e-300)))
+
+
+def _reference_roundoff_floor(eps, dt_s: float, draw: int) -> float:
+    """How far round-off alone carries the reference engine: the worst state difference (in
+    units of the 1e-9 bound) between it and a second reference whose state is scaled by
+    ``1 +- 2**-52`` (one or two units in the last place, a random sign per state) after every
+    epoch, over the same epochs."""
+    lay = StateLayout.build(lead="lead", vehicles=list(FOLLOWERS))
+    a, b = ReferenceClusterEkf(lay, CFG), ReferenceClusterEkf(lay, CFG)
+    rng = np.random.default_rng(draw)
+    worst = 0.0
+    for _ in zip(run_filter(a, eps, dt_s), run_filter(b, eps, dt_s), strict=True):
+        worst = max(worst, _worst_state_ratio(b, a))
+        xb = b.state_arrays()[0]  # the filter's own array: perturbed in place, deliberately
+        xb *= 1.0 + np.finfo(float).eps * rng.choice([-1.0, 1.0], size=xb.shape)
+    return worst
+
+
 def test_engines_agree_with_carrier_phase():
     """filterpy reference vs production engine with ambiguity blocks added, fixed, held and
-    removed: same x and P to 1e-9 relative (see tests/test_engines_agree.py for the bound)."""
+    removed: the same records (kinds, PRNs, accept flags) and counters, P to 1e-9 relative (see
+    tests/test_engines_agree.py for the bound), x to 1e-9 relative or, where the carrier phase
+    makes that finer than round-off, to the reference's own round-off floor.
+
+    Why the floor: the fixed SD phases tie each follower's up position (sigma ~1 cm, so its
+    1e-9 bound is ~1e-11 m) to its SD clock state, which is ~1e4 m here (one unit in its last
+    place is 1.8e-12 m). Over seeds 3-7 of this scenario the reference against itself with
+    one-ulp state perturbations after every epoch (:func:`_reference_roundoff_floor`, two draws)
+    moved 1.47-1.55, 1.11-1.37, 1.59-1.89, 1.16-1.28 and 0.81-0.98 bound units, the production
+    engine 0.73, 0.88, 1.68, 1.17 and 0.45 from it (benchmarks/NOTES.md, 2026-12-04, a seventh
+    session): so the production engine may differ from the reference by the 1e-9 bound or by
+    the worst of two such perturbed references, whichever is larger. P stays within 0.1 of its
+    bound (it does not depend on the innovations)."""
     scn = SimScenario(n_vehicles=3, duration_s=12.0, uwb=True, bearing_vehicles=("lead",), steady_clock=True,
                       phase_slips=((9.0, "v2", 5, 1),))
     eps = simulate(scn, CFG, np.random.default_rng(3))
     lay = StateLayout.build(lead="lead", vehicles=list(FOLLOWERS))
     prod, ref = ClusterEkf(lay, CFG), ReferenceClusterEkf(lay, CFG)
+    worst = 0.0
     for (_, ip), (_, ir) in zip(run_filter(prod, eps, scn.dt_s), run_filter(ref, eps, scn.dt_s), strict=True):
         assert [(i.kind, i.prn, i.accepted) for i in ip] == [(i.kind, i.prn, i.accepted) for i in ir]
         assert prod.layout == ref.layout
         sd = np.sqrt(np.abs(np.diag(ref.P)))
-        np.testing.assert_array_less(np.abs(prod.x - ref.x), 1e-9 * (np.abs(ref.x) + sd) + 1e-300)
+        worst = max(worst, _worst_state_ratio(prod, ref))
         np.testing.assert_array_less(np.abs(prod.P - ref.P), 1e-9 * (np.abs(ref.P) + np.outer(sd, sd)) + 1e-300)
     assert prod.counters == ref.counters
     assert prod.counters.get("ambiguity_fix_applied", 0) >= 2 and prod.counters["phase_slip"] == 1
+    floor = max(_reference_roundoff_floor(eps, scn.dt_s, draw) for draw in (0, 1))
+    assert worst <= max(1.0, floor), f"states {worst:.2f} bound units apart, the reference's round-off floor {floor:.2f}"
 
 
 def test_cn0_mask_drops_the_phase_of_a_masked_satellite_without_a_false_slip():
