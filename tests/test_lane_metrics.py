@@ -177,3 +177,20 @@ def test_attach_truth_is_a_left_join_on_time_and_vehicle_and_the_cluster_lead():
     assert list(no_cluster["lead_edge"][:2]) == ["e2", "e0"]
     twice = attach_truth(epochs, pd.concat([truth, truth.iloc[[3]]], ignore_index=True))
     assert len(twice) == 4 and list(twice["edge"][:3]) == ["e3", "e3", "e1"]
+
+
+def test_rows_skip_missing_keys_and_match_the_table():
+    """A row without a solution or vehicle belongs to no group (as in pandas' groupby); the
+    groups keep their order of first appearance; ``lane_level_rows`` is the table's rows."""
+    from v2v.metrics.lane import lane_level_rows
+
+    az = 0.0
+    true = np.tile(-20.0 * _fwd_unit(az), (3, 1))
+    parts = [_epochs(true, true.copy(), np.full(3, az), solution=s, vehicle=v)
+             for s, v in (("B", "c1.2"), ("A", "c1.1"), ("B", "c1.1"))]
+    df = pd.concat(parts, ignore_index=True)
+    df.loc[1, "vehicle"] = None
+    df.loc[4, "solution"] = None
+    rows = lane_level_rows(df)
+    assert [(r["solution"], r["vehicle"], r["epochs"]) for r in rows] == [("B", "c1.2", 2), ("A", "c1.1", 2), ("B", "c1.1", 3)]
+    assert rows == lane_level_table(df).to_dict("records")

@@ -119,3 +119,47 @@ def test_update_kind_statistics_by_hand():
     assert got["nis_frac_in_band_clean"] == 0.25
     none_clean = update_kind_statistics(np.array([False]), np.array([True]), np.array([9.0]))
     assert np.isnan(none_clean["nis_mean_clean"]) and np.isnan(none_clean["nis_frac_in_band_clean"])
+
+
+def test_solution_statistics_by_hand():
+    """Per solution (order of first appearance) and vehicle (sorted), over the initialized
+    epochs only: the error statistics, the mean sigma with missing sigmas left out, the
+    3-sigma exceedance rate and the NEES summary, computed by hand on six rows."""
+    import pandas as pd
+
+    from v2v.metrics.summary import solution_statistics
+
+    nan = float("nan")
+    rows = [  # solution, vehicle, initialized, along, sigma_along, nees
+        ("S2", "c1.2", True, 1.0, 0.25, 2.0),
+        ("S2", "c1.1", True, -2.0, 1.0, 1.0),
+        ("S2", "c1.2", True, 3.0, nan, 4.0),
+        ("S2", "c1.2", False, 99.0, 0.1, 99.0),  # not initialized: left out
+        ("S1", "c1.1", True, 0.5, 1.0, 3.0),
+        ("S1", "c1.1", False, 7.0, 1.0, nan),
+    ]
+    df = pd.DataFrame(rows, columns=["solution", "vehicle", "initialized", "along_err_m", "sigma_along_m", "nees_pos"])
+    for comp in ("across", "up"):
+        df[f"{comp}_err_m"] = 0.0
+        df[f"sigma_{comp}_m"] = 1.0
+    df["azimuth_err_rad"] = [np.radians(1.0), nan, np.radians(-3.0), 0.0, nan, 0.0]
+    out = solution_statistics(df, {})
+    assert list(out) == ["S2", "S1"]
+    assert list(out["S2"]["vehicles"]) == ["c1.1", "c1.2"]
+    v = out["S2"]["vehicles"]["c1.2"]
+    assert v["epochs"] == 3 and v["availability"] == 2 / 3
+    assert v["along"]["n"] == 2 and v["along"]["mean"] == 2.0 and v["along"]["max_abs"] == 3.0
+    assert v["along_sigma_mean_m"] == 0.25  # the NaN sigma left out
+    assert v["along_exceeds_3sigma"] == 0.5  # |1| > 0.75; |3| > 3 NaN is false: 1 of 2
+    assert v["nees_pos"]["n"] == 2 and v["nees_pos"]["mean"] == 3.0 and v["nees_pos"]["dof"] == 3
+    lo, hi = chi2_band(3)
+    assert v["nees_pos"]["frac_in_band"] == np.mean([lo <= 2.0 <= hi, lo <= 4.0 <= hi])
+    assert v["azimuth_err_deg"]["n"] == 2 and v["azimuth_err_deg"]["mean"] == pytest.approx(-1.0, abs=1e-12)
+    w = out["S1"]["vehicles"]["c1.1"]
+    assert w["availability"] == 0.5 and w["along"]["mean"] == 0.5 and w["along"]["std"] == 0.0
+    assert np.isnan(out["S2"]["vehicles"]["c1.1"]["azimuth_err_deg"]["mean"])  # its one initialized azimuth is NaN
+    # a vehicle with no initialized epoch: NaN statistics, no exceedance rate
+    df.loc[df["solution"] == "S1", "initialized"] = False
+    w = solution_statistics(df, {})["S1"]["vehicles"]["c1.1"]
+    assert w["availability"] == 0.0 and w["along"]["n"] == 0 and np.isnan(w["along_sigma_mean_m"])
+    assert "along_exceeds_3sigma" not in w

@@ -634,10 +634,10 @@ def _run_scenario(scenario: Scenario, out_dir: Path, *, quiet: bool, replay: boo
             # per-update statistics from the compact logs, one kind of one solution at a time
             meas = {key: rec.log.kind_statistics() for key, rec in recs.items()}
             sol_stats = solution_statistics(epochs_df, {}, measurements=meas)
-            from v2v.metrics.lane import lane_level_table
+            from v2v.metrics.lane import lane_level_rows
 
             truth_cols = ["t_s", "vehicle", "cluster", "is_lead", "edge", "azimuth_rad"]  # what attach_truth reads
-            lane_records = lane_level_table(epochs_df, pd.read_parquet(tmp / "truth.parquet", columns=truth_cols)).to_dict("records")
+            lane_records = lane_level_rows(epochs_df, pd.read_parquet(tmp / "truth.parquet", columns=truth_cols))
         else:
             sol_stats = {}
         timing["metrics_io"] = time.perf_counter() - t0

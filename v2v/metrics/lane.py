@@ -275,6 +275,12 @@ def _pct(a: F64, p: float) -> float:
     return float(np.percentile(a, p)) if a.size else float("nan")
 
 
+def _pct3(a: F64) -> list[float]:
+    """The 50th, 95th and 99th percentiles of ``a`` (NaN if empty), in one call: each the same
+    number as its own :func:`_pct` (the same order statistics, interpolated alike)."""
+    return np.percentile(a, (50.0, 95.0, 99.0)).tolist() if a.size else [float("nan")] * 3
+
+
 def lane_level_table(epochs: pd.DataFrame, truth: pd.DataFrame | None = None, *,
                      across_alert_limit_m: float = ACROSS_ALERT_LIMIT_M,
                      along_alert_limit_m: float = ALONG_ALERT_LIMIT_M,
@@ -289,6 +295,20 @@ def lane_level_table(epochs: pd.DataFrame, truth: pd.DataFrame | None = None, *,
     k-sigma and PL misleading-information rates, mean PL, availability at the alert limit
     and HMI rate (see the module docstring). Fractions of initialized epochs unless noted.
     """
+    out = pd.DataFrame(lane_level_rows(epochs, truth, across_alert_limit_m=across_alert_limit_m,
+                                       along_alert_limit_m=along_alert_limit_m, integrity_risk=integrity_risk,
+                                       k_sigma=k_sigma))
+    out.attrs.update({"across_alert_limit_m": across_alert_limit_m, "along_alert_limit_m": along_alert_limit_m,
+                      "integrity_risk": integrity_risk, "k_pl": protection_factor(integrity_risk), "k_sigma": k_sigma})
+    return out
+
+
+def lane_level_rows(epochs: pd.DataFrame, truth: pd.DataFrame | None = None, *,
+                    across_alert_limit_m: float = ACROSS_ALERT_LIMIT_M,
+                    along_alert_limit_m: float = ALONG_ALERT_LIMIT_M,
+                    integrity_risk: float = INTEGRITY_RISK, k_sigma: float = K_SIGMA) -> list[dict[str, Any]]:
+    """The rows of :func:`lane_level_table` as dicts of Python scalars (what ``summary.json``
+    stores), without building the frame."""
     df = epochs.reset_index(drop=True)
     truth_cols = _truth_columns(df, truth) if truth is not None else None
     if truth_cols is not None:  # lane_quantities' columns without building its frame
@@ -302,14 +322,16 @@ def lane_level_table(epochs: pd.DataFrame, truth: pd.DataFrame | None = None, *,
                                          "same_edge", "rel_lane_geom", "rel_lane_true", "rel_lane_est")}
     # the rows of each (solution, vehicle) in order of first appearance, as groupby(sort=False)
     # gives them (rows with a missing key belong to no group)
-    groups: dict[tuple[object, object], list[int]] = {}
-    for k, key in enumerate(zip(q["solution"].tolist(), q["vehicle"].tolist(), strict=True)):
-        groups.setdefault(key, []).append(k)
+    sol_code, sols = pd.factorize(np.asarray(q["solution"], dtype=object))
+    veh_code, vehs = pd.factorize(np.asarray(q["vehicle"], dtype=object))
+    keyed = (sol_code >= 0) & (veh_code >= 0)
+    pair_code, pairs = pd.factorize(np.where(keyed, sol_code * max(len(vehs), 1) + veh_code, -1))
     rows = []
-    for (sol, veh), members in groups.items():
-        if pd.isna(sol) or pd.isna(veh):
+    for k, pair in enumerate(pairs.tolist()):
+        if pair < 0:
             continue
-        g = np.asarray(members, dtype=np.intp)
+        sol, veh = sols[pair // max(len(vehs), 1)], vehs[pair % max(len(vehs), 1)]
+        g = np.flatnonzero(pair_code == k)
         init = col["initialized"][g].astype(bool)
         ok = g[init]
         n = len(ok)
@@ -327,8 +349,8 @@ def lane_level_table(epochs: pd.DataFrame, truth: pd.DataFrame | None = None, *,
             "correct_lane": frac(est == true),
             "correct_lane_geom": frac(est == geom),
             "wrong_lane_by_2plus": frac(np.abs(est - true) >= 2),
-            "across_abs_p50_m": _pct(across, 50.0), "across_abs_p95_m": _pct(across, 95.0),
-            "across_abs_p99_m": _pct(across, 99.0), "along_abs_p95_m": _pct(along, 95.0),
+            **dict(zip(("across_abs_p50_m", "across_abs_p95_m", "across_abs_p99_m"), _pct3(across), strict=True)),
+            "along_abs_p95_m": _pct(along, 95.0),
         }
         for axis, limit in (("across", across_alert_limit_m), ("along", along_alert_limit_m)):
             ic = integrity_counts(col[f"{axis}_err_m"][g], col[f"sigma_{axis}_m"][g], init, alert_limit_m=limit,
@@ -339,7 +361,4 @@ def lane_level_table(epochs: pd.DataFrame, truth: pd.DataFrame | None = None, *,
             row[f"{axis}_availability"] = ic["availability"]
             row[f"{axis}_hmi_rate"] = ic["hmi_rate"]
         rows.append(row)
-    out = pd.DataFrame(rows)
-    out.attrs.update({"across_alert_limit_m": across_alert_limit_m, "along_alert_limit_m": along_alert_limit_m,
-                      "integrity_risk": integrity_risk, "k_pl": protection_factor(integrity_risk), "k_sigma": k_sigma})
-    return out
+    return rows

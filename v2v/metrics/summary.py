@@ -11,6 +11,15 @@ from v2v.estimation.filter import KIND_CONSTRAINT
 from v2v.metrics.errors import chi2_band, consistency_summary, error_statistics
 
 NIS_DOF = 1  # every update is scalar
+_ERROR_COLUMNS = ("along_err_m", "across_err_m", "up_err_m", "sigma_along_m", "sigma_across_m", "sigma_up_m", "nees_pos")
+
+
+def _skipna_mean(a: np.ndarray) -> float:
+    """The mean of the non-NaN values (NaN if none): pandas' ``Series.mean()`` without
+    bottleneck, NaN replaced by 0, summed (numpy's pairwise sum) and divided by their count."""
+    nan = np.isnan(a)
+    n = a.size - int(nan.sum())
+    return float(np.where(nan, 0.0, a).sum() / n) if n else float("nan")
 
 
 def solution_statistics(epochs: pd.DataFrame, updates: dict[str, pd.DataFrame],
@@ -24,22 +33,32 @@ def solution_statistics(epochs: pd.DataFrame, updates: dict[str, pd.DataFrame],
     """
     out: dict[str, Any] = {}
     for sol, g_sol in epochs.groupby("solution", sort=False):
+        # each vehicle's rows (vehicles in sorted order, as groupby("vehicle", sort=True) gives
+        # them), read from the solution's columns as arrays: the same values, in the same order,
+        # as the per-vehicle frames, without building one
+        codes, names = pd.factorize(g_sol["vehicle"], sort=True)
+        col = {c: g_sol[c].to_numpy(dtype=float) for c in _ERROR_COLUMNS}
+        initialized = g_sol["initialized"].to_numpy(dtype=bool)
+        azimuth = g_sol["azimuth_err_rad"].to_numpy(dtype=float) if "azimuth_err_rad" in g_sol else None
+        phase = "phase_state" in g_sol
         per_vehicle: dict[str, Any] = {}
-        for veh, g in g_sol.groupby("vehicle", sort=True):
-            ok = g[g["initialized"]]
-            entry: dict[str, Any] = {"epochs": int(len(g)), "availability": float(len(ok) / max(len(g), 1))}
+        for k, veh in enumerate(names):
+            rows = np.flatnonzero(codes == k)
+            ok = rows[initialized[rows]]
+            entry: dict[str, Any] = {"epochs": int(len(rows)), "availability": float(len(ok) / max(len(rows), 1))}
             for comp in ("along", "across", "up"):
-                entry[comp] = error_statistics(ok[f"{comp}_err_m"].to_numpy())
-                entry[f"{comp}_sigma_mean_m"] = float(ok[f"sigma_{comp}_m"].mean()) if len(ok) else float("nan")
+                err, sigma = col[f"{comp}_err_m"][ok], col[f"sigma_{comp}_m"][ok]
+                entry[comp] = error_statistics(err)
+                entry[f"{comp}_sigma_mean_m"] = _skipna_mean(sigma)
                 # integrity: how often |error| exceeds the filter's own 3-sigma bound
                 if len(ok):
-                    entry[f"{comp}_exceeds_3sigma"] = float(np.mean(np.abs(ok[f"{comp}_err_m"]) > 3.0 * ok[f"sigma_{comp}_m"]))
-            entry["nees_pos"] = consistency_summary(ok["nees_pos"].to_numpy(), dof=3)
-            if "azimuth_err_rad" in g:
-                az = ok["azimuth_err_rad"].dropna().to_numpy()
-                entry["azimuth_err_deg"] = error_statistics(np.degrees(az))
-            if "phase_state" in g and g["phase_state"].notna().any():  # a carrier-phase solution
-                entry["ambiguity"] = ambiguity_statistics(ok)
+                    entry[f"{comp}_exceeds_3sigma"] = float(np.mean(np.abs(err) > 3.0 * sigma))
+            entry["nees_pos"] = consistency_summary(col["nees_pos"][ok], dof=3)
+            if azimuth is not None:
+                az = azimuth[ok]
+                entry["azimuth_err_deg"] = error_statistics(np.degrees(az[~np.isnan(az)]))
+            if phase and g_sol["phase_state"].iloc[rows].notna().any():  # a carrier-phase solution
+                entry["ambiguity"] = ambiguity_statistics(g_sol.iloc[ok])
             per_vehicle[str(veh)] = entry
         sol_entry: dict[str, Any] = {"vehicles": per_vehicle}
         if "lead_azimuth_err_rad" in g_sol:
