@@ -324,13 +324,13 @@ def lane_level_rows(epochs: pd.DataFrame, truth: pd.DataFrame | None = None, *,
     # gives them (rows with a missing key belong to no group)
     sol_code, sols = pd.factorize(np.asarray(q["solution"], dtype=object))
     veh_code, vehs = pd.factorize(np.asarray(q["vehicle"], dtype=object))
-    keyed = (sol_code >= 0) & (veh_code >= 0)
-    pair_code, pairs = pd.factorize(np.where(keyed, sol_code * max(len(vehs), 1) + veh_code, -1))
+    n_veh = max(len(vehs), 1)  # pair code = solution code * n_veh + vehicle code; -1: a key missing
+    pair_code, pairs = pd.factorize(np.where((sol_code >= 0) & (veh_code >= 0), sol_code * n_veh + veh_code, -1))
     rows = []
     for k, pair in enumerate(pairs.tolist()):
         if pair < 0:
             continue
-        sol, veh = sols[pair // max(len(vehs), 1)], vehs[pair % max(len(vehs), 1)]
+        sol, veh = sols[pair // n_veh], vehs[pair % n_veh]
         g = np.flatnonzero(pair_code == k)
         init = col["initialized"][g].astype(bool)
         ok = g[init]
