@@ -31,8 +31,10 @@ from v2v.viz.rerun_logger import (  # noqa: E402
     RerunReplayLogger,
     RerunReplayParams,
     blueprint_chunks,
+    ellipse_axes,
     ellipse_scale,
     extrude_footprints,
+    rotation_2d,
     send_blueprint_chunks,
     series_style_chunks,
     strips3d_arrow,
@@ -257,7 +259,7 @@ def test_static_world_is_static_and_building_mesh_is_the_prism(run):
 
 @pytest.mark.parametrize("shape", [(5, 2, 3), (7, 37, 3), (0, 2, 3), (1, 1, 3)])
 def test_strips_arrow_is_what_rerun_builds_from_the_array(shape):
-    """The links' and ellipses' strips converted in one pass are the arrow array rerun's own
+    """The links' strips converted in one pass are the arrow array rerun's own
     LineStrip3D conversion builds from the same (n, k, 3) float64 array: same type (so rerun
     takes it as it is), same float32 points, same offsets; also for no strips."""
     a = np.random.default_rng(7).normal(size=shape) * 1e3
@@ -315,23 +317,66 @@ def test_truth_box_heading_north_without_world(tmp_path):
     np.testing.assert_allclose([1 - 2 * (y * y + z * z), 2 * (x * y + w * z)], [0.0, 1.0], atol=1e-6)
 
 
+def _quat_matrix(q):
+    """Rotation matrix of the unit quaternion (x, y, z, w) (rerun's order; textbook formula)."""
+    x, y, z, w = q
+    return np.array([
+        [1 - 2 * (y * y + z * z), 2 * (x * y - w * z), 2 * (x * z + w * y)],
+        [2 * (x * y + w * z), 1 - 2 * (x * x + z * z), 2 * (y * z - w * x)],
+        [2 * (x * z - w * y), 2 * (y * z + w * x), 1 - 2 * (x * x + y * y)],
+    ])
+
+
+def _drawn_ellipse(centre, half, quat, n=73):
+    """Points of the horizontal cross-section the viewer draws for a flat ellipsoid:
+    centre + R(q) diag(half) [cos t, sin t, 0]."""
+    t = np.linspace(0.0, 2.0 * np.pi, n)
+    unit = np.stack([np.cos(t), np.sin(t), np.zeros_like(t)])
+    return np.asarray(centre) + (_quat_matrix(quat) @ (np.asarray(half)[:, None] * unit)).T
+
+
 def test_ellipse_is_the_95_percent_contour(run):
-    """Every outline point d satisfies d^T C^-1 d = k^2, k^2 = chi2.ppf(0.95, 2) = 5.9915."""
+    """Every point d of the drawn ellipse satisfies d^T C^-1 d = k^2, k^2 = chi2.ppf(0.95, 2) =
+    5.9915; it lies flat at the estimate's height, centred on the estimate, drawn as wireframe."""
     assert ellipse_scale(0.95) ** 2 == pytest.approx(chi2.ppf(0.95, 2), rel=1e-12)
     _, chunks = run
-    _, strips = _column(chunks[bp.ellipses_path("gps+uwb")], "LineStrips3D:strips")
+    c = chunks[bp.ellipses_path("gps+uwb")]
+    _, half = _column(c, "Ellipsoids3D:half_sizes")
+    _, centres = _column(c, "Ellipsoids3D:centers")
+    _, quats = _column(c, "Ellipsoids3D:quaternions")
+    _, fill = _column(c, "Ellipsoids3D:fill_mode")
     _, pts = _column(chunks[bp.estimates_path("gps+uwb")], "Points3D:positions")
     covs = [np.array([[0.04, 0.01], [0.01, 0.09]]), np.array([[0.25, 0.0], [0.0, 0.01]])]
     k = N_STEPS - 1
-    assert len(strips[k]) == 2
+    assert len(half[k]) == 2 and fill[k] == [rr.components.FillMode.MajorWireframe.value]
     for j, cov in enumerate(covs):
-        outline = np.asarray(strips[k][j])
-        centre = np.asarray(pts[k][j])
-        d = outline[:, :2] - centre[:2]
+        np.testing.assert_allclose(centres[k][j], pts[k][j], atol=0)  # centred on the estimate
+        assert 0.0 < half[k][j][2] < 0.01 * min(half[k][j][:2])  # flat: under 1 % of the minor semi-axis
+        outline = _drawn_ellipse(centres[k][j], half[k][j], quats[k][j])
+        np.testing.assert_allclose(outline[:, 2], pts[k][j][2], atol=1e-6)  # horizontal
+        d = outline[:, :2] - np.asarray(centres[k][j][:2])
         m2 = np.einsum("pi,ij,pj->p", d, np.linalg.inv(cov), d)
-        # float32 points near 30 m: |d| error ~ 4e-6 m against |d| >= 0.24 m -> relative m2 error < 1e-4
-        np.testing.assert_allclose(m2, chi2.ppf(0.95, 2), rtol=1e-4)
-        np.testing.assert_allclose(outline[0], outline[-1], atol=0)  # closed
+        # float32 half sizes and quaternions: relative error ~1e-7 per number, ~1e-6 in m2
+        np.testing.assert_allclose(m2, chi2.ppf(0.95, 2), rtol=1e-5)
+
+
+@pytest.mark.parametrize("cov", [[[4.0, 0.0], [0.0, 1.0]], [[1.0, 0.0], [0.0, 4.0]], [[2.0, 1.9], [1.9, 2.0]],
+                                 [[1e-6, 0.0], [0.0, 9.0]], [[1.0, 0.0], [0.0, 1.0]], [[2.0, -1.0], [-1.0, 0.0]]])
+def test_ellipse_axes_are_the_covariance_eigenpairs(cov):
+    """Semi-axes k sqrt(lambda) (major first) along the eigenvectors: the contour points
+    d = R(angle) diag(semi-axes) [cos t, sin t] satisfy d^T C^-1 d = k^2 (hand-picked
+    covariances: axis-aligned either way, nearly singular, thin, a circle); a matrix with a
+    negative eigenvalue (round-off) gets a zero semi-axis, not NaN."""
+    c = np.array(cov)
+    half, angle = ellipse_axes(c, 2.0)
+    lam = np.linalg.eigvalsh(c)
+    np.testing.assert_allclose(half[0], 2.0 * np.sqrt(np.clip(lam[::-1], 0.0, None)), rtol=1e-12)
+    if lam[0] <= 0:
+        assert half[0, 1] == 0.0
+        return
+    t = np.linspace(0.0, 2.0 * np.pi, 13)
+    d = (rotation_2d(angle[0]) @ (half[0][:, None] * np.stack([np.cos(t), np.sin(t)]))).T
+    np.testing.assert_allclose(np.einsum("pi,ij,pj->p", d, np.linalg.inv(c), d), 4.0, rtol=1e-9)
 
 
 def test_covariance_is_rotated_by_grid_convergence(tmp_path):
@@ -343,13 +388,44 @@ def test_covariance_is_rotated_by_grid_convergence(tmp_path):
     with RerunReplayLogger(path) as lg:
         lg.log_world(lanes, {}, [], [], GEO)
         lg.log_estimates(0.0, "s", ["a"], [[0.0, 0.0]], [[[0.0, 0.0], [0.0, 4.0]]])
-    _, strips = _column(_read(path)[bp.ellipses_path("s")], "LineStrips3D:strips")
-    outline = np.asarray(strips[0][0])[:, :2]
+    c = _read(path)[bp.ellipses_path("s")]
+    (half,), (centre,), (quat,) = (_column(c, f"Ellipsoids3D:{name}")[1][0] for name in ("half_sizes", "centers", "quaternions"))
+    outline = _drawn_ellipse(centre, half, quat)[:, :2]
     far = outline[np.argmax(np.linalg.norm(outline, axis=1))]
     assert np.linalg.norm(far) == pytest.approx(2.0 * ellipse_scale(0.95), rel=1e-6)  # k sigma, sigma = 2 m
     grid_az = math.atan2(far[0], far[1])
     grid_az = (grid_az + math.pi / 2) % math.pi - math.pi / 2  # the axis has no sign
     assert grid_az == pytest.approx(-gamma, abs=1e-6)
+
+
+def test_ellipse_rows_are_what_logging_the_archetype_stores(tmp_path):
+    """The buffered ellipse rows sent with send_columns are the rows that logging
+    rr.Ellipsoids3D (the documented archetype: half sizes, centres, quaternions; one line
+    radius, colour and fill mode per row) at the same time stores, component for component."""
+    cov = np.array([[[0.04, 0.01], [0.01, 0.09]], [[0.25, -0.02], [-0.02, 0.01]]])
+    xy = np.array([[3.0, 4.0], [-1.0, 2.0]])
+    ours = tmp_path / "ours.rrd"
+    with RerunReplayLogger(ours, params=RerunReplayParams(recording_id="e")) as lg:
+        lg.log_estimates(0.5, "s", ["a", "b"], xy, cov)
+    half, yaw = ellipse_axes(cov, ellipse_scale(0.95))
+    z = RerunReplayParams().estimate_z_m
+    ref = tmp_path / "ref.rrd"
+    rec = rr.RecordingStream(application_id="v2v", recording_id="e", send_properties=False)
+    rec.set_log_time_enabled(False)
+    rec.set_log_tick_enabled(False)
+    rec.save(ref)
+    rec.set_time(bp.TIMELINE, duration=0.5)
+    rec.log(bp.ellipses_path("s"), rr.Ellipsoids3D(
+        half_sizes=np.column_stack([half, [1e-3, 1e-3]]), centers=np.column_stack([xy, [z, z]]),
+        quaternions=[[0.0, 0.0, math.sin(a / 2), math.cos(a / 2)] for a in yaw],
+        line_radii=0.03, colors=SOLUTION_RGB[0], fill_mode="majorwireframe"))
+    rec.flush()
+    rec.disconnect()
+    path = "/" + bp.ellipses_path("s").lstrip("/")
+    a, b = _rows_by_entity(_read(ours))[path], _rows_by_entity(_read(ref))[path]
+    assert sorted(a) == sorted(f"Ellipsoids3D:{c}" for c in (
+        "half_sizes", "centers", "quaternions", "line_radii", "colors", "fill_mode"))
+    assert a == b
 
 
 def test_links_and_sky(run):
@@ -707,8 +783,8 @@ def test_batched_calls_store_the_same_rows_as_per_step_calls(tmp_path):
     chunks = _read(tmp_path / "b.rrd")
     _, half = _column(chunks["/" + bp.TRUTH], "Boxes3D:half_sizes")
     assert len(half) == len(steps) and half[5] == []  # the empty step is a row without boxes
-    _, strips = _column(chunks[bp.ellipses_path("gps+uwb")], "LineStrips3D:strips")
-    assert [len(s) for s in strips] == [1, 2] * 3  # steps 1, 3, 5, ...: 1 and 3 estimates, one NaN
+    _, half = _column(chunks[bp.ellipses_path("gps+uwb")], "Ellipsoids3D:half_sizes")
+    assert [len(h) for h in half] == [1, 2] * 3  # steps 1, 3, 5, ...: 1 and 3 estimates, one NaN
 
 
 def test_error_rows_of_the_wrong_shape_are_refused(tmp_path):

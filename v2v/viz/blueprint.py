@@ -18,7 +18,8 @@ path                                archetype        content
 ``world/vehicles/truth/antennas``   Points3D         true antenna positions (``xyz_m``)
 ``world/vehicles/background``       Boxes3D          non-cluster traffic (radio blockers)
 ``world/estimates/<sol>``           Points3D         estimated antenna positions
-``world/estimates/<sol>/ellipses``  LineStrips3D     horizontal uncertainty ellipses
+``world/estimates/<sol>/ellipses``  Ellipsoids3D     horizontal uncertainty ellipses: flat
+                                                     ellipsoids, drawn with their axes
 ``world/links/uwb``                 LineStrips3D     UWB ranges a -> b, coloured by status
 ``world/links/bearing``             LineStrips3D     bearings a -> b, coloured by status
 ``map/lanes``                       GeoLineStrings   lane centre lines, WGS-84 (static)
