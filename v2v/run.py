@@ -915,12 +915,13 @@ def _log_truth_and_links(logger, steps, uwb, bearings, sky_every: dict[int, Any]
     t_steps = np.array([st.t_s for st in steps])
     # antenna of every vehicle at every step, NaN where absent
     vehicle_index: dict[str, int] = {}
-    cells = [(j, vehicle_index.setdefault(v, len(vehicle_index))) for j, st in enumerate(steps) for v in st.vehicles]
+    js = np.repeat(np.arange(len(steps)), [len(st.vehicles) for st in steps])
+    vs = np.fromiter((vehicle_index.setdefault(v, len(vehicle_index)) for st in steps for v in st.vehicles),
+                     dtype=np.intp, count=len(js))
     xyz = np.full((len(steps), len(vehicle_index), 3), np.nan)
     present = np.zeros((len(steps), len(vehicle_index)), dtype=bool)
-    if cells:
-        js, vs = np.array(cells).T
-        xyz[js, vs] = [s.xyz_m for st in steps for s in st.vehicles.values()]
+    if len(js):
+        xyz[js, vs] = np.concatenate([s.xyz_m for st in steps for s in st.vehicles.values()]).reshape(-1, 3)
         present[js, vs] = True
     for kind, meas in (("uwb", uwb), ("bearing", bearings)):
         if meas is None or not meas.n:

@@ -69,6 +69,7 @@ import os
 import tempfile
 from collections.abc import Mapping, Sequence
 from dataclasses import dataclass
+from operator import attrgetter
 from pathlib import Path
 from typing import Any
 
@@ -723,16 +724,21 @@ class RerunReplayLogger(ReplayLogger):
         """Boxes, antennas (and map points) of steps that all have cluster vehicles."""
         states = [s for st in steps for s in st.vehicles.values()]
         lengths = [len(st.vehicles) for st in steps]
-        az = np.array([s.azimuth_rad for s in states])
-        grid_az = az - self._gamma_rad
+        n = len(states)
+
+        def column(name: str, dtype: type = float) -> NDArray[Any]:
+            return np.fromiter(map(attrgetter(name), states), dtype=dtype, count=n)
+
+        grid_az = column("azimuth_rad") - self._gamma_rad
         fwd = np.column_stack([np.sin(grid_az), np.cos(grid_az)])
-        size = np.array([[s.length_m, s.width_m, s.height_m] for s in states])
-        front = np.array([s.front_bumper_xy_m for s in states], dtype=float)
+        size = np.column_stack([column("length_m"), column("width_m"), column("height_m")])
+        front = np.concatenate([s.front_bumper_xy_m for s in states]).reshape(-1, 2)
         centre_xy = front - 0.5 * size[:, :1] * fwd
         centres = np.column_stack([centre_xy, 0.5 * size[:, 2]])
         yaw = 0.5 * np.pi - grid_az
-        quat = np.column_stack([np.zeros((len(states), 2)), np.sin(yaw / 2), np.cos(yaw / 2)])
-        colors = np.array([LEAD_RGB if s.is_lead else FOLLOWER_RGB for s in states], dtype=np.uint8)
+        quat = np.column_stack([np.zeros((n, 2)), np.sin(yaw / 2), np.cos(yaw / 2)])
+        colors = np.where(column("is_lead", bool)[:, None], np.array(LEAD_RGB, dtype=np.uint8),
+                          np.array(FOLLOWER_RGB, dtype=np.uint8))
         self._add_rows(
             bp.TRUTH,
             rr.Boxes3D,
@@ -747,12 +753,12 @@ class RerunReplayLogger(ReplayLogger):
             },
             {},
         )
-        antennas = np.array([s.xyz_m for s in states], dtype=float)
+        antennas = np.concatenate([s.xyz_m for s in states]).reshape(-1, 3).astype(float, copy=False)
         self._add_rows(
             bp.TRUTH_ANTENNAS, rr.Points3D, times, lengths, {"positions": antennas, "colors": colors}, {"radii": 0.1}
         )
         if self.params.show_map:
-            latlon = np.degrees([[s.lat_rad, s.lon_rad] for s in states])
+            latlon = np.degrees(np.column_stack([column("lat_rad"), column("lon_rad")]))
             self._add_rows(
                 bp.MAP_VEHICLES,
                 rr.GeoPoints,
