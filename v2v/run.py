@@ -381,7 +381,10 @@ def _run_scenario(scenario: Scenario, out_dir: Path, *, quiet: bool, replay: boo
 
         truth = ParquetStream(tmp / "truth.parquet", batch_rows=10_000)  # also flushed at every chunk
         files = NetFiles(net_path=net.net_path, poly_paths=net.poly_paths, route_edges=net.route_edges)
-        logger = _make_logger(tmp, replay)
+        t0 = time.perf_counter()
+        logger = _make_logger(tmp, replay)  # the recording's file and threads: the replay's time too
+        if replay:
+            timing["replay"] += time.perf_counter() - t0
         log_epochs = _epoch_logger(logger, net.georef, timing) if replay else None
         acc = _RunAccumulators()
         fault_log = None
