@@ -327,6 +327,8 @@ def ellipse_axes(cov_m2: ArrayLike, k: float) -> tuple[FloatArray, FloatArray]:
 # half size of the flat ellipsoid drawn as an ellipse, along z: 1 mm rather than 0 keeps the
 # instance's scale invertible; its two vertical cross-sections are then lines along the axes
 ELLIPSE_HALF_THICKNESS_M = 1e-3
+# the ellipses' fill mode as the component's arrow value (uint8): rerun parses a name per row
+_MAJOR_WIREFRAME = pa.scalar(rr.components.FillMode.MajorWireframe.value, pa.uint8())
 
 
 def rotation_2d(angle_rad: float) -> FloatArray:
@@ -434,11 +436,17 @@ class _SceneRows:
                 if rows and isinstance(rows[0], np.ndarray):
                     cat = np.concatenate(rows)
                     merged[name] = strips3d_arrow(cat) if name == "strips" and self.archetype is rr.LineStrips3D else cat
-                else:  # lists (labels, line strips)
+                elif name == "labels":  # str (every caller converts them): rerun would str() each again
+                    merged[name] = pa.array([x for row in rows for x in row], type=pa.utf8())
+                else:  # lists (line strips)
                     merged[name] = [x for row in rows for x in row]
             cols.extend(self.archetype.columns(**merged).partition(np.asarray(self.lengths)))
         if self.per_row:
-            cols.extend(self.archetype.columns(**{name: np.asarray(v) for name, v in self.per_row.items()}))
+            cols.extend(self.archetype.columns(**{
+                # an arrow scalar (an enum's raw value) goes to rerun as arrow, which it takes as it is
+                name: pa.array(v, type=v[0].type) if isinstance(v[0], pa.Scalar) else np.asarray(v)
+                for name, v in self.per_row.items()
+            }))
         rec.send_columns(path, indexes=index, columns=cols)
         self.times.clear()
         self.lengths.clear()
@@ -841,7 +849,7 @@ class RerunReplayLogger(ReplayLogger):
                     "centers": np.column_stack([xy[ok], np.full(n, z)]),
                     "quaternions": np.column_stack([np.zeros((n, 2)), np.sin(0.5 * yaw), np.cos(0.5 * yaw)]),
                 },
-                {"line_radii": 0.03, "colors": rgb_u8, "fill_mode": "MajorWireframe"},
+                {"line_radii": 0.03, "colors": rgb_u8, "fill_mode": _MAJOR_WIREFRAME},
             )
 
     # -- links ------------------------------------------------------------------------
