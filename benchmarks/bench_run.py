@@ -8,7 +8,9 @@ file writer among them) pinned to one CPU (``--cpu``; the first this process may
 default, ``--cpu -1`` leaves the placement to the OS as before 2026-12-04), so the numbers are
 single-core times measured in this one invocation. In that process the runs follow each other (libsumo: one simulation at a
 time): *cold*, the first run (replay off; it also loads the compiled kernels and pays the
-lazy imports: what a single ``v2v run`` pays), then ``--repeat`` pairs of *warm* runs (the
+lazy imports: what a single ``v2v run`` pays), with the replay on the same seed again (the
+first replay-on run: rerun's import and the blueprint's build, ~0.25 s, paid once per process;
+before 2026-12-04's ninth session it fell in the first warm pair), then ``--repeat`` pairs of *warm* runs (the
 steady state of a sweep worker), each pair one seed with the replay off and on, back to back
 (off first in even pairs, on first in odd ones: the machine's speed drifts). Warm figures are
 the fastest of the repeats (the machine may be shared: the minimum is the least disturbed run);
@@ -79,8 +81,11 @@ def one(scn, replay, tag):
     return {"simulated_s": s["simulated_s"], "wall_s": s["wall_s"], "cpu_s": time.process_time() - c0,
             "timing_s": s["timing_s"]}
 
-# cold: the first run of the process; warm: next seeds in the same process, replay off then on
+# cold: the first run of the process (and the first with the replay on: rerun's import, the
+# blueprint's build); warm: next seeds in the same process, replay off then on
 res["cold"] = one(sc, False, "cold")
+if replay_on:
+    res["cold_on"] = one(sc, True, "cold_on")
 for k in range(repeat):  # pair k: one seed, replay off then on (on then off for odd k: the machine drifts)
     scn = load_scenario(None, ov + [f"seed={sc.seed + 1 + k}"])
     if replay_on and k % 2:
@@ -221,7 +226,8 @@ def main(argv: list[str] | None = None) -> int:
         for n in args.sizes:
             r = run_case(n, args.duration, not args.no_replay_on, max(1, args.repeat), Path(tmp) / f"n{n}", cpu)
             r["n"] = n
-            for tag, label in (("cold", "replay=off cold"), ("warm", "replay=off warm"), ("warm_replay", "replay=on  warm")):
+            for tag, label in (("cold", "replay=off cold"), ("cold_on", "replay=on  cold"), ("warm", "replay=off warm"),
+                               ("warm_replay", "replay=on  warm")):
                 if tag not in r:
                     continue
                 c = r[tag]
