@@ -144,6 +144,34 @@ def test_replay_has_the_run(short_run):
     assert any(p.startswith("/errors/GPS/c1.1/along") for p in paths)
 
 
+def test_rerun_verifies_the_replay(short_run, tmp_path):
+    """rerun's own loader accepts the run's recording (`rerun rrd verify`: every chunk decoded
+    and every column checked against its component's arrow type, the file's footer present);
+    it rejects, e.g., half sizes stored as float64 instead of 3 x float32."""
+    import shutil
+    import subprocess
+    import sys
+    from pathlib import Path
+
+    exe = shutil.which("rerun", path=str(Path(sys.executable).parent)) or shutil.which("rerun")
+    if exe is None:
+        pytest.skip("rerun's command line is not installed")
+    out, _ = short_run
+    p = subprocess.run([exe, "rrd", "verify", str(out / "replay.rrd")], capture_output=True, text=True, timeout=300)
+    assert p.returncode == 0, p.stdout + p.stderr
+    # the check has teeth: a column of the wrong arrow type is refused
+    import rerun as rr
+
+    bad = tmp_path / "bad.rrd"
+    rec = rr.RecordingStream("v2v", recording_id="bad", send_properties=False)
+    rec.save(bad)
+    col = rr.ComponentColumn(rr.Ellipsoids3D.descriptor_half_sizes(), rr.components.ScalarBatch(np.ones(3)))
+    rec.send_columns("x", indexes=[rr.TimeColumn("sim_time", duration=np.arange(3.0))], columns=[col])
+    rec.disconnect()
+    p = subprocess.run([exe, "rrd", "verify", str(bad)], capture_output=True, text=True, timeout=300)
+    assert p.returncode != 0 and "half_sizes" in p.stdout + p.stderr
+
+
 def test_replay_error_series_are_the_epochs_table(short_run):
     """Each error series in the replay is the epochs table's column of that name (along,
     across, their sigmas (+sigma, -sigma), NEES, SD pseudoranges used, all rejections) at the
