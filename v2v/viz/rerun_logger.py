@@ -331,6 +331,13 @@ ELLIPSE_HALF_THICKNESS_M = 1e-3
 _MAJOR_WIREFRAME = pa.scalar(rr.components.FillMode.MajorWireframe.value, pa.uint8())
 
 
+def quaternions_about_z(angle_rad: ArrayLike) -> FloatArray:
+    """Unit quaternions ``(n, 4)``, rerun's (x, y, z, w) order, of rotations by ``angle_rad``
+    counter-clockwise about +z."""
+    half = 0.5 * np.asarray(angle_rad, dtype=float).reshape(-1)
+    return np.column_stack([np.zeros((len(half), 2)), np.sin(half), np.cos(half)])
+
+
 def rotation_2d(angle_rad: float) -> FloatArray:
     """Counter-clockwise rotation matrix."""
     c, s = math.cos(angle_rad), math.sin(angle_rad)
@@ -378,7 +385,8 @@ class _SceneRows:
     """Rows of one archetype on one entity path, waiting for ``send_columns``.
 
     ``per_instance`` components hold one array per row (leading axis = the row's
-    instance count, equal across those components); ``per_row`` components hold one
+    instance count, equal across those components; ``labels``: a list of str, which every
+    caller converts them to); ``per_row`` components hold one
     value per row (logged as a unit-length batch, like a scalar passed to ``log``).
     ``key`` is the archetype plus both component-name sets: a row with another key
     cannot share the columns and makes the caller flush this buffer first.
@@ -433,13 +441,11 @@ class _SceneRows:
         if self.per_instance:
             merged: dict[str, object] = {}
             for name, rows in self.per_instance.items():
-                if rows and isinstance(rows[0], np.ndarray):
+                if name == "labels":  # one utf8 array, which rerun takes as it is (it would str() each label)
+                    merged[name] = pa.array([x for row in rows for x in row], type=pa.utf8())
+                else:
                     cat = np.concatenate(rows)
                     merged[name] = strips3d_arrow(cat) if name == "strips" and self.archetype is rr.LineStrips3D else cat
-                elif name == "labels":  # str (every caller converts them): rerun would str() each again
-                    merged[name] = pa.array([x for row in rows for x in row], type=pa.utf8())
-                else:  # lists (line strips)
-                    merged[name] = [x for row in rows for x in row]
             cols.extend(self.archetype.columns(**merged).partition(np.asarray(self.lengths)))
         if self.per_row:
             cols.extend(self.archetype.columns(**{
@@ -721,9 +727,7 @@ class RerunReplayLogger(ReplayLogger):
             {
                 "half_sizes": 0.5 * bg[:, 3:6],
                 "centers": np.column_stack([bg[:, :2], 0.5 * bg[:, 5]]),
-                "quaternions": np.column_stack(
-                    [np.zeros((len(bg), 2)), np.sin(yaw_bg / 2), np.cos(yaw_bg / 2)]
-                ),
+                "quaternions": quaternions_about_z(yaw_bg),
             },
             {"colors": np.array(BACKGROUND_RGB, dtype=np.uint8)},
         )
@@ -744,7 +748,7 @@ class RerunReplayLogger(ReplayLogger):
         centre_xy = front - 0.5 * size[:, :1] * fwd
         centres = np.column_stack([centre_xy, 0.5 * size[:, 2]])
         yaw = 0.5 * np.pi - grid_az
-        quat = np.column_stack([np.zeros((n, 2)), np.sin(yaw / 2), np.cos(yaw / 2)])
+        quat = quaternions_about_z(yaw)
         colors = np.where(column("is_lead", bool)[:, None], np.array(LEAD_RGB, dtype=np.uint8),
                           np.array(FOLLOWER_RGB, dtype=np.uint8))
         self._add_rows(
@@ -847,7 +851,7 @@ class RerunReplayLogger(ReplayLogger):
                 {
                     "half_sizes": np.column_stack([half, np.full(n, ELLIPSE_HALF_THICKNESS_M)]),
                     "centers": np.column_stack([xy[ok], np.full(n, z)]),
-                    "quaternions": np.column_stack([np.zeros((n, 2)), np.sin(0.5 * yaw), np.cos(0.5 * yaw)]),
+                    "quaternions": quaternions_about_z(yaw),
                 },
                 {"line_radii": 0.03, "colors": rgb_u8, "fill_mode": _MAJOR_WIREFRAME},
             )
