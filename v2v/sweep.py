@@ -687,7 +687,7 @@ def _run_study_locked(study: Study, out: Path, scheduler: str | None, workers: i
         _remove_staging(runs_dir)  # left by a run killed mid-write
         _write_sweep_json(out, study)
         if not pending:
-            _write_runs(out, study, rows)
+            df = _write_runs(out, study, rows)
     except BaseException:
         if client is not None:
             client.close()
@@ -739,17 +739,19 @@ def _run_study_locked(study: Study, out: Path, scheduler: str | None, workers: i
                         now = time.monotonic()
                         next_flush = now + max(flush_every_s, 20.0 * (now - t_w))
         finally:
-            _write_runs(out, study, rows)
+            df = _write_runs(out, study, rows)
             client.cancel([f for f in futures if not f.done()])
             client.close()
             if cluster is not None:
                 cluster.close()
                 _remove_staging(runs_dir)  # its workers are gone: nothing is being written any more
-                # runs that completed while the cluster shut down (after Ctrl-C) are complete too
+                # runs that completed while the cluster shut down (after Ctrl-C) are complete too;
+                # the table is written again only if there are any (it holds every other row)
+                n_rows = len(rows)
                 for run_id, row in _scan(study, runs_dir)[0].items():
                     rows.setdefault(run_id, row)
-                _write_runs(out, study, rows)
-    df = _write_runs(out, study, rows)
+                if len(rows) > n_rows:
+                    df = _write_runs(out, study, rows)
     wall = time.perf_counter() - wall0
     return SweepResult(out_dir=out, total=len(study.runs), executed=len(pending), skipped=skipped, failed=failed,
                        wall_s=wall, table=df)
