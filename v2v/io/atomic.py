@@ -37,8 +37,8 @@ def publish(tmp_path: Path, path: Path) -> None:
 
 
 def atomic_write(path: Path, writer: Callable[[Path], None]) -> None:
-    """Call ``writer(tmp_path)`` and rename the result to ``path``, with the mode a plain
-    ``open`` would give it (``0o666`` less the umask: ``mkstemp`` makes its files private)."""
+    """Call ``writer(tmp_path)`` on a temporary file beside ``path`` and :func:`publish` it as
+    ``path``; on any error the temporary file is removed and ``path`` is left as it was."""
     path = Path(path)
     path.parent.mkdir(parents=True, exist_ok=True)
     fd, tmp = tempfile.mkstemp(prefix=f".{path.name}.", suffix=".tmp", dir=path.parent)
