@@ -33,7 +33,8 @@ def make_steps(
     t_s: np.ndarray, xy_by_vehicle: dict[str, np.ndarray], az_by_vehicle: dict[str, float] | None = None,
     z_m: float = 1.5,
 ) -> list[TrafficStep]:
-    """Fake truth from net-XY positions (n, 2); azimuth from the XY velocity unless given."""
+    """Fake truth from net-XY positions (n, 2); azimuth from the XY velocity unless given, true
+    and grid alike (GEO is tangent at its origin: < 1e-4 rad of grid convergence within 1 km)."""
     az_by_vehicle = az_by_vehicle or {}
     states: dict[str, list[VehicleState]] = {}
     for vid, xy in xy_by_vehicle.items():
@@ -52,7 +53,7 @@ def make_steps(
                 vehicle_id=vid, cluster="c0", is_lead=False, t_s=float(t_s[i]),
                 xyz_m=np.array([xy[i, 0], xy[i, 1], z_m]), lat_rad=float(lat[i]), lon_rad=float(lon[i]),
                 h_m=z_m, ecef_m=ecef[i], vel_enu_mps=np.array([v[i, 0], v[i, 1], 0.0]),
-                speed_mps=float(speed[i]), accel_mps2=0.0, azimuth_rad=float(az[i]), yaw_rate_rps=0.0,
+                speed_mps=float(speed[i]), accel_mps2=0.0, azimuth_rad=float(az[i]), grid_azimuth_rad=float(az[i]), yaw_rate_rps=0.0,
                 front_bumper_xy_m=xy[i] + 2.25 * fwd[i], edge_id="e0", lane_id="e0_0", lane_index=0,
                 lane_width_m=3.5, lateral_offset_m=0.0, length_m=4.5, width_m=1.8, height_m=1.5,
             )

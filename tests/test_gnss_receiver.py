@@ -57,7 +57,7 @@ def vstate(vid: str, t_s: float, x_m: float, y_m: float = 0.0, vel_enu=(0.0, 0.0
     return VehicleState(
         vehicle_id=vid, cluster="c0", is_lead=False, t_s=t_s, xyz_m=np.array([x, y, z]),
         lat_rad=float(lat), lon_rad=float(lon), h_m=float(h), ecef_m=ecef, vel_enu_mps=v,
-        speed_mps=float(np.hypot(v[0], v[1])), accel_mps2=0.0, azimuth_rad=0.0, yaw_rate_rps=0.0,
+        speed_mps=float(np.hypot(v[0], v[1])), accel_mps2=0.0, azimuth_rad=0.0, grid_azimuth_rad=0.0, yaw_rate_rps=0.0,
         front_bumper_xy_m=np.array([x, y]), edge_id="e", lane_id="e_0", lane_index=0, lane_width_m=3.5,
         lateral_offset_m=0.0, length_m=4.5, width_m=1.8, height_m=1.5,
     )
@@ -569,7 +569,7 @@ def test_echo_doppler_off_the_central_meridian(eph):
         v = ecef_to_enu_rotation(float(lat), float(lon)) @ v_ecef
         return VehicleState(vehicle_id="a", cluster="c0", is_lead=False, t_s=t, xyz_m=np.array([*xy, ANTENNA_Z_M]),
                             lat_rad=float(lat), lon_rad=float(lon), h_m=float(h), ecef_m=ecef, vel_enu_mps=v,
-                            speed_mps=float(np.hypot(v[0], v[1])), accel_mps2=0.0, azimuth_rad=0.0, yaw_rate_rps=0.0,
+                            speed_mps=float(np.hypot(v[0], v[1])), accel_mps2=0.0, azimuth_rad=0.0, grid_azimuth_rad=0.0, yaw_rate_rps=0.0,
                             front_bumper_xy_m=xy, edge_id="e", lane_id="e_0", lane_index=0, lane_width_m=3.5,
                             lateral_offset_m=0.0, length_m=4.5, width_m=1.8, height_m=1.5)
 

@@ -70,6 +70,7 @@ def _state(
         speed_mps=10.0,
         accel_mps2=0.0,
         azimuth_rad=az_rad,
+        grid_azimuth_rad=az_rad,  # (a tangent projection near its origin: no grid convergence)
         yaw_rate_rps=0.0,
         front_bumper_xy_m=np.array([x, y]),
         edge_id="e",

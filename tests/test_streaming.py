@@ -77,7 +77,7 @@ def test_uwb_stream_equals_one_call():
         return VehicleState(vehicle_id=vid, t_s=float(t[k]), cluster="c", is_lead=vid == "a", xyz_m=np.array([x, 0.0, 1.5]),
                             lat_rad=0.9, lon_rad=0.2, h_m=1.5, ecef_m=np.array([4.0e6 + x, 1.0e6, 4.8e6]),
                             vel_enu_mps=np.array([12.0, 0.0, 0.0]), speed_mps=12.0, accel_mps2=0.0,
-                            azimuth_rad=math.pi / 2, yaw_rate_rps=0.0, front_bumper_xy_m=np.array([x, 0.0]),
+                            azimuth_rad=math.pi / 2, grid_azimuth_rad=math.pi / 2, yaw_rate_rps=0.0, front_bumper_xy_m=np.array([x, 0.0]),
                             edge_id="e", lane_id="e_0", lane_index=0, lane_width_m=3.2, lateral_offset_m=0.0,
                             length_m=4.5, width_m=1.8, height_m=1.5)
 

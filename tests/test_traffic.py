@@ -34,10 +34,10 @@ def tiny_net(tmp_path_factory) -> Path:
     return out
 
 
-def _drive(net: Path, overrides: list[str], n_steps: int, seed: int = 7):
+def _drive(net: Path, overrides: list[str], n_steps: int, seed: int = 7, proj: str = PROJ):
     sc = load_scenario(overrides=overrides)
     files = NetFiles(net_path=net, route_edges=("AB", "BC", "CD"))
-    with SumoSimulation(sc, files, GeoReference(proj=PROJ), seed=seed) as sim:
+    with SumoSimulation(sc, files, GeoReference(proj=proj), seed=seed) as sim:
         steps = [sim.snapshot()] + [sim.step() for _ in range(n_steps)]
         import libsumo
 
@@ -67,8 +67,11 @@ def test_cluster_drives_on_the_road_with_consistent_azimuth(tiny_net):
             # The front-bumper centre lies on its lane's centre line (SUMO's definition) ...
             d_front = _dist_to_polyline(v.front_bumper_xy_m, lanes[v.lane_id]) if v.lane_id in lanes else 0.0
             max_front_dist = max(max_front_dist, d_front)
-            # ... and the antenna is the body-frame lever arm away from it.
-            a = v.azimuth_rad  # grid convergence at x < 1 km from the central meridian is < 1e-4 rad
+            # ... and the antenna is the body-frame lever arm away from it, turned by the grid
+            # azimuth (SUMO's angle); the true azimuth is that plus the grid convergence there
+            a = v.grid_azimuth_rad
+            gamma = GeoReference(proj=PROJ).grid_convergence_rad(*v.xyz_m[:2].tolist())
+            assert abs(math.remainder(v.azimuth_rad - a - gamma, 2 * math.pi)) < 1e-6
             fwd = np.array([math.sin(a), math.cos(a)])
             left = np.array([-math.cos(a), math.sin(a)])
             np.testing.assert_allclose(v.xyz_m[:2], v.front_bumper_xy_m + arm[0] * fwd + arm[1] * left, atol=0.01)
@@ -88,6 +91,28 @@ def test_cluster_drives_on_the_road_with_consistent_azimuth(tiny_net):
         # and the ENU velocity agrees with the position change (speed along azimuth).
         v = np.array([st.vehicles[vid].vel_enu_mps[:2] for st in steps if st.vehicles[vid].edge_id == "AB"])
         np.testing.assert_allclose(np.degrees(np.arctan2(v[1:][moving, 0], v[1:][moving, 1])), 90.0, atol=2.0)
+
+
+def test_grid_and_true_azimuth_off_the_central_meridian(tiny_net):
+    """The same net 200 km east of its projection's central meridian (false easting -200 km, as
+    a UTM zone's edge): SUMO's angle is the grid azimuth, which turns the lever arm in net XY;
+    the true azimuth adds the grid convergence, gamma = atan(tan(dlon) sin(lat)) on the sphere
+    (dlon = 200 km / (R cos lat): 0.0384 rad at 51.08 N; the ellipsoid's differs by < 1 %)."""
+    proj = PROJ.replace("+x_0=0", "+x_0=-200000")
+    sc, steps, _, _ = _drive(tiny_net, ["clusters.0.vehicles=2"], 150, proj=proj)
+    arm = np.array(sc.vehicle_types["passenger"].antenna_lever_arm_m)
+    lat = math.radians(51.0775)
+    gamma_hand = math.atan(math.tan(200e3 / (6371e3 * math.cos(lat))) * math.sin(lat))
+    n = 0
+    for st in steps:
+        for v in st.vehicles.values():
+            a = v.grid_azimuth_rad
+            fwd, left = np.array([math.sin(a), math.cos(a)]), np.array([-math.cos(a), math.sin(a)])
+            np.testing.assert_allclose(v.xyz_m[:2], v.front_bumper_xy_m + arm[0] * fwd + arm[1] * left, atol=1e-6)
+            gamma = math.remainder(v.azimuth_rad - a, 2 * math.pi)
+            assert gamma == pytest.approx(gamma_hand, rel=0.01)
+            n += 1
+    assert n > 200
 
 
 def test_headway_follows_the_two_second_rule(tiny_net):

@@ -34,7 +34,8 @@ def make_steps(t_s: np.ndarray, xy_by_vehicle: dict[str, np.ndarray], z_m: float
     """Fake truth: one VehicleState per vehicle and time from net-XY positions (n, 2).
 
     The antenna is at the box centre, ``z_m`` above the road; azimuth from the XY velocity
-    (north if static); vehicles are 4.5 x 1.8 x 1.5 m.
+    (north if static), true and grid alike (GEO is tangent at its origin: < 1e-4 rad of grid
+    convergence within 1 km); vehicles are 4.5 x 1.8 x 1.5 m.
     """
     states: dict[str, list[VehicleState]] = {}
     for k, (vid, xy) in enumerate(xy_by_vehicle.items()):
@@ -50,7 +51,7 @@ def make_steps(t_s: np.ndarray, xy_by_vehicle: dict[str, np.ndarray], z_m: float
                 vehicle_id=vid, cluster="c0", is_lead=(k == 0), t_s=float(t_s[i]),
                 xyz_m=np.array([xy[i, 0], xy[i, 1], z_m]), lat_rad=float(lat[i]), lon_rad=float(lon[i]),
                 h_m=GEO.origin_h_m + z_m, ecef_m=ecef[i], vel_enu_mps=np.array([v[i, 0], v[i, 1], 0.0]),
-                speed_mps=float(speed[i]), accel_mps2=0.0, azimuth_rad=float(az[i]), yaw_rate_rps=0.0,
+                speed_mps=float(speed[i]), accel_mps2=0.0, azimuth_rad=float(az[i]), grid_azimuth_rad=float(az[i]), yaw_rate_rps=0.0,
                 front_bumper_xy_m=xy[i] + 2.25 * fwd[i], edge_id="e0", lane_id="e0_0", lane_index=0,
                 lane_width_m=3.5, lateral_offset_m=0.0, length_m=4.5, width_m=1.8, height_m=1.5,
             )
@@ -407,6 +408,39 @@ def test_car_between_radios_without_reflector_gives_nothing():
         make_steps(T_PARK, XY_PARK, z_m=2.0), np.random.default_rng(1), occlusion=geom
     )
     assert r2.n > 80 and r2.los.all()
+
+
+def test_vehicle_box_lies_along_the_grid_azimuth():
+    """On a projected net a vehicle's true azimuth is its grid azimuth (SUMO's angle, what turns
+    the body into net XY) plus the grid convergence gamma: 0.041 rad (2.33 deg) at a UTM zone's
+    edge at 51 N. A 12 x 2.5 x 3.5 m truck heading grid north with its front bumper at the
+    origin covers x in [-1.25, 1.25], y in [-12, 0] of net XY, so a link at x = 1.0 m, 1 m up,
+    from y = -11.5 to -8.5 m runs inside it. Turned by the true azimuth instead, the box's
+    right side would be at x = 1.25 / cos(gamma) + y tan(gamma) <= 0.90 m there (rear swung
+    12 gamma = 0.49 m): the link would pass. Hand geometry, independent of the code."""
+    occ = pytest.importorskip("v2v.world.occlusion")
+    from v2v.world.buildings import World
+
+    gamma = 0.041
+    lat, lon = GEO.xy_to_geodetic(np.array([0.0]), np.array([-6.0]))
+    truck = VehicleState(
+        vehicle_id="t", cluster="c0", is_lead=True, t_s=0.0, xyz_m=np.array([0.0, -1.0, 3.9]), lat_rad=float(lat[0]),
+        lon_rad=float(lon[0]), h_m=3.9, ecef_m=GEO.xyz_to_ecef(0.0, -1.0, 3.9), vel_enu_mps=np.zeros(3), speed_mps=0.0,
+        accel_mps2=0.0, azimuth_rad=gamma, grid_azimuth_rad=0.0, yaw_rate_rps=0.0, front_bumper_xy_m=np.zeros(2),
+        edge_id="e0", lane_id="e0_0", lane_index=0, lane_width_m=3.5, lateral_offset_m=0.0, length_m=12.0,
+        width_m=2.5, height_m=3.5,
+    )
+    step = TrafficStep(t_s=0.0, vehicles={"t": truck})
+    boxes, row = uwb.vehicle_boxes(step)
+    np.testing.assert_allclose(boxes[row["t"]], [0.0, -6.0, 0.0, 12.0, 2.5, 3.5])
+    many, first, ids = uwb.vehicle_boxes_many([step])
+    np.testing.assert_array_equal(many, boxes)
+    geom = occ.OcclusionGeometry(World(buildings=()))
+    r = geom.links(np.array([[1.0, -11.5, 1.0]]), np.array([[1.0, -8.5, 1.0]]), boxes)
+    assert r.blocked.tolist() == [True] and r.blocker_kind.tolist() == ["vehicle"]
+    # the same link 1.3 m right of the centre line is outside the box
+    r = geom.links(np.array([[1.3, -11.5, 1.0]]), np.array([[1.3, -8.5, 1.0]]), boxes)
+    assert r.blocked.tolist() == [False]
 
 
 # ------------------------------------------------------------------------------------------

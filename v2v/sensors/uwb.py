@@ -375,24 +375,30 @@ class _Track:
 
 
 def _offset_vectors(
-    offset_body_m: F64, azimuth_rad: F64, lat_rad: F64, lon_rad: F64
+    offset_body_m: F64, azimuth_rad: F64, grid_azimuth_rad: F64, lat_rad: F64, lon_rad: F64
 ) -> tuple[F64, F64]:
-    """Body-frame lever arm (x fwd, y left, z up) to ENU/net-XY and ECEF vectors, (n, 3) each.
+    """Body-frame lever arm (x fwd, y left, z up) to net-XY (+ height) and ECEF vectors, (n, 3) each.
 
     ENU = x (sin a, cos a, 0) + y (-cos a, sin a, 0) + z (0, 0, 1) (heading_unit_vectors in
-    v2v.frames); net XY uses the same vector (grid convergence neglected: < 1e-3 rad * lever arm).
+    v2v.frames) with ``a`` the true azimuth; net XY the same with the grid azimuth (SUMO's
+    angle: the two differ by the projection's grid convergence, ~2.3 deg at a UTM zone's edge;
+    the projection's scale, < 1e-3, is neglected).
     """
     x, y, z = offset_body_m
-    s, c = np.sin(azimuth_rad), np.cos(azimuth_rad)
-    e = x * s - y * c
-    n = x * c + y * s
+
+    def horizontal(a: F64) -> tuple[F64, F64]:
+        s, c = np.sin(a), np.cos(a)
+        return x * s - y * c, x * c + y * s
+
+    gx, gy = horizontal(grid_azimuth_rad)
+    xy = np.stack([gx, gy, np.full_like(gx, z)], axis=-1)
+    e, n = horizontal(azimuth_rad)
     u = np.full_like(e, z)
-    enu = np.stack([e, n, u], axis=-1)
     sl, cl, so, co = np.sin(lat_rad), np.cos(lat_rad), np.sin(lon_rad), np.cos(lon_rad)
     ecef = np.stack(
         [-so * e - sl * co * n + cl * co * u, co * e - sl * so * n + cl * so * u, cl * n + sl * u], axis=-1
     )
-    return enu, ecef
+    return xy, ecef
 
 
 def _tracks_from_states(rows: Mapping[str, list], offsets: Mapping[str, F64]) -> dict[str, _Track]:
@@ -406,11 +412,12 @@ def _tracks_from_states(rows: Mapping[str, list], offsets: Mapping[str, F64]) ->
         off = offsets.get(vid)
         if off is not None and np.any(off != 0.0):
             az = np.array([s.azimuth_rad for s in states])
+            grid_az = np.array([s.grid_azimuth_rad for s in states])
             lat = np.array([s.lat_rad for s in states])
             lon = np.array([s.lon_rad for s in states])
-            d_enu, d_ecef = _offset_vectors(off, az, lat, lon)
+            d_xy, d_ecef = _offset_vectors(off, az, grid_az, lat, lon)
             ecef = ecef + d_ecef
-            xyz = xyz + d_enu
+            xyz = xyz + d_xy
         out[vid] = _Track(t_s=t, ecef_m=ecef, xyz_m=xyz)
     return out
 
@@ -418,8 +425,10 @@ def _tracks_from_states(rows: Mapping[str, list], offsets: Mapping[str, F64]) ->
 def vehicle_boxes(step: TrafficStep) -> tuple[F64, dict[str, int]]:
     """Occluding boxes at one step: cluster vehicles (sorted by id) then ``step.background``.
 
-    Rows ``(cx, cy, azimuth_rad, length_m, width_m, height_m)``; a cluster vehicle's centre is
-    its front bumper (SUMO ``getPosition``) moved back by half its length along its heading.
+    Rows ``(cx, cy, grid azimuth, length_m, width_m, height_m)`` in net XY (the grid azimuth
+    clockwise from the net's +y axis, as SUMO's ``getAngle`` and ``step.background``); a
+    cluster vehicle's centre is its front bumper (SUMO ``getPosition``) moved back by half its
+    length along its heading.
     Returns the boxes and the row index of each cluster vehicle.
     """
     ids = sorted(step.vehicles)
@@ -427,7 +436,7 @@ def vehicle_boxes(step: TrafficStep) -> tuple[F64, dict[str, int]]:
     for vid in ids:
         vs = step.vehicles[vid]
         fb = np.asarray(vs.front_bumper_xy_m, dtype=float)
-        a = vs.azimuth_rad
+        a = vs.grid_azimuth_rad
         c = fb - 0.5 * vs.length_m * np.array([np.sin(a), np.cos(a)])
         rows.append((c[0], c[1], a, vs.length_m, vs.width_m, vs.height_m))
     cluster = np.array(rows, dtype=float).reshape(-1, 6)
@@ -452,7 +461,7 @@ def vehicle_boxes_many(steps: Sequence[TrafficStep]) -> tuple[F64, NDArray[np.in
     out = np.empty((int(first[-1]), 6))
     if states:
         fb = np.array([vs.front_bumper_xy_m for vs in states], dtype=float).reshape(-1, 2)
-        a = np.array([vs.azimuth_rad for vs in states], dtype=float)
+        a = np.array([vs.grid_azimuth_rad for vs in states], dtype=float)
         size = np.array([(vs.length_m, vs.width_m, vs.height_m) for vs in states], dtype=float)
         c = fb - (0.5 * size[:, :1]) * np.column_stack([np.sin(a), np.cos(a)])
         rows = np.repeat(first[:-1], n_v) + np.arange(a.size) - np.repeat(np.cumsum(n_v) - n_v, n_v)

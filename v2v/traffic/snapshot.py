@@ -3,7 +3,10 @@
 These types carry no libsumo objects, so every later stage (sensors, estimation,
 metrics, viz) can use them without importing SUMO. All SUMO conventions stop at
 :mod:`v2v.traffic.sumo`: positions here are the *antenna* (front-bumper position
-plus the body-frame lever arm), azimuths are radians clockwise from north.
+plus the body-frame lever arm), ``azimuth_rad`` is radians clockwise from true north;
+``grid_azimuth_rad`` and the background boxes' angle are radians clockwise from the net's +y
+axis (SUMO's ``getAngle``: grid north; the two differ by the projection's grid convergence),
+the angle that turns a body-frame vector into net XY.
 """
 
 from __future__ import annotations
@@ -36,6 +39,7 @@ class VehicleState:
     speed_mps: float
     accel_mps2: float  # longitudinal acceleration
     azimuth_rad: float  # heading, clockwise from true north, [0, 2pi)
+    grid_azimuth_rad: float  # heading in net XY: clockwise from the net's +y axis (SUMO getAngle), [0, 2pi)
     yaw_rate_rps: float  # d(azimuth)/dt, positive clockwise (turning right)
     front_bumper_xy_m: NDArray[np.float64]  # SUMO getPosition, (2,)
     edge_id: str
@@ -71,7 +75,8 @@ class TrafficStep:
     """All cluster vehicles present at one step, plus what happened during it.
 
     ``background`` holds boxes of non-cluster vehicles (for occlusion of radio links):
-    rows of (x_m, y_m, azimuth_rad, length_m, width_m, height_m), centre of the box.
+    rows of (x_m, y_m, grid azimuth (rad, clockwise from the net's +y axis), length_m, width_m,
+    height_m), centre of the box.
     """
 
     t_s: float

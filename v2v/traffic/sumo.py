@@ -9,7 +9,7 @@ is not thread-safe), builds the clusters, steps SUMO and returns typed
   (x forward, y left, z up, ISO 8855) from the front-bumper centre at road level.
 * ``vehicle.getAngle`` is **degrees clockwise from the net's +y axis** (grid north). The
   true azimuth adds the projection's grid convergence (zero on a tangent projection's
-  central meridian, up to ~1.5 deg in a UTM zone).
+  central meridian; ~2.3 deg at a UTM zone's edge at 51 deg N).
 * ``vehicle.getSpeed`` is the front bumper's speed along its lane *at* the step (SUMO
   moves it by the mean of the old and new speed). The antenna velocity is the rigid-body
   ``v_front + omega x r``: lane tangent times speed, plus SUMO's lateral speed during a lane
@@ -388,6 +388,7 @@ class SumoSimulation:
             xyz = np.empty((n_all, 3))
             xyz[:, :2], xyz[:, 2] = ant_xy, ant_z
             lat_l, lon_l, h_l = lat.tolist(), lon.tolist(), h.tolist()
+            grid_az = (np.radians(grid_az_deg) % (2 * math.pi)).tolist()  # (the background boxes' convention)
         out: list[TrafficStep] = []
         k = 0
         for r in raws:
@@ -412,6 +413,7 @@ class SumoSimulation:
                     speed_mps=speed,
                     accel_mps2=accel,
                     azimuth_rad=az_list[k],
+                    grid_azimuth_rad=grid_az[k],
                     yaw_rate_rps=yaw[k],
                     front_bumper_xy_m=xy[k],
                     edge_id=road_id,

@@ -41,9 +41,10 @@ Geometry
 --------
 * Vehicle box: centre = front bumper - L/2 · heading, at height H/2 above the road
   (z = 0, as for the buildings of :mod:`v2v.world.buildings`); half sizes (L/2, W/2, H/2);
-  rotation about +z by the yaw ``psi = pi/2 - (alpha - gamma)`` counter-clockwise from +x,
-  where ``alpha`` is the true azimuth and ``gamma`` the grid convergence
-  (:meth:`v2v.frames.GeoReference.grid_convergence_rad`: grid azimuth = alpha - gamma).
+  rotation about +z by the yaw ``psi = pi/2 - alpha_grid`` counter-clockwise from +x, where
+  ``alpha_grid`` is the vehicle's grid azimuth (``VehicleState.grid_azimuth_rad``, SUMO's
+  angle; the background boxes' too): its true azimuth less the grid convergence at the
+  vehicle (:meth:`v2v.frames.GeoReference.grid_convergence_rad`).
 * Uncertainty ellipse of probability ``p`` for a 2-D Gaussian: the points ``d`` with
   ``d^T C^-1 d = k^2``, ``k^2 = -2 ln(1 - p)`` (the chi-square quantile with 2 degrees
   of freedom in closed form; p = 0.95 gives k = 2.4477), i.e. semi-axes ``k sqrt(lambda)``
@@ -718,7 +719,7 @@ class RerunReplayLogger(ReplayLogger):
                 start = k
         bgs = [np.asarray(st.background, dtype=float).reshape(-1, 6) for st in steps]
         bg = np.concatenate(bgs)
-        yaw_bg = 0.5 * np.pi - (bg[:, 2] - self._gamma_rad)
+        yaw_bg = 0.5 * np.pi - bg[:, 2]  # (their angle is SUMO's: already the grid azimuth)
         self._add_rows(
             bp.BACKGROUND,
             rr.Boxes3D,
@@ -741,7 +742,7 @@ class RerunReplayLogger(ReplayLogger):
         def column(name: str, dtype: type = float) -> NDArray[Any]:
             return np.fromiter(map(attrgetter(name), states), dtype=dtype, count=n)
 
-        grid_az = column("azimuth_rad") - self._gamma_rad
+        grid_az = column("grid_azimuth_rad")
         fwd = np.column_stack([np.sin(grid_az), np.cos(grid_az)])
         size = np.column_stack([column("length_m"), column("width_m"), column("height_m")])
         front = np.concatenate([s.front_bumper_xy_m for s in states]).reshape(-1, 2)

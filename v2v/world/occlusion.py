@@ -1100,7 +1100,8 @@ class OcclusionGeometry:
             Link end points, net XY metres and height above ground.
         vehicle_boxes : (v, 6), optional
             Rows ``(cx, cy, azimuth_rad, length_m, width_m, height_m)``: box centre, heading
-            clockwise from +y, and size; each box stands on the ground (z in [0, height]).
+            clockwise from the net's +y axis (the grid azimuth: SUMO's angle, not the true
+            azimuth), and size; each box stands on the ground (z in [0, height]).
         exclude : (m, 2) int, optional
             Box rows ignored per link (the end points' own vehicles); -1 = none.
 

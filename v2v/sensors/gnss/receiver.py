@@ -1167,7 +1167,7 @@ def warm_up() -> None:
     state = VehicleState(
         vehicle_id="w", cluster="w", is_lead=True, t_s=0.0, xyz_m=z3, lat_rad=float(np.deg2rad(51.08)),
         lon_rad=float(np.deg2rad(-114.13)), h_m=0.0, ecef_m=np.array([-1641945.0, -3664804.0, 4940009.0]),  # 51 N, 114 W
-        vel_enu_mps=z3, speed_mps=0.0, accel_mps2=0.0, azimuth_rad=0.0, yaw_rate_rps=0.0, front_bumper_xy_m=z3[:2],
+        vel_enu_mps=z3, speed_mps=0.0, accel_mps2=0.0, azimuth_rad=0.0, grid_azimuth_rad=0.0, yaw_rate_rps=0.0, front_bumper_xy_m=z3[:2],
         edge_id="", lane_id="", lane_index=0, lane_width_m=3.5, lateral_offset_m=0.0, length_m=4.5, width_m=1.8,
         height_m=1.5,
     )
