@@ -40,7 +40,7 @@ def _lane_level_module():
     return mod
 
 
-def _plot_ttc(epochs: pd.DataFrame, res: dict, pair: tuple[str, str], lead: str, length_m: float, cfg,
+def _plot_ttc(epochs: pd.DataFrame, res: dict, pair: tuple[str, str], lead: str, geometry: dict, cfg,
               path: Path, title: str) -> None:
     import matplotlib
 
@@ -52,11 +52,11 @@ def _plot_ttc(epochs: pd.DataFrame, res: dict, pair: tuple[str, str], lead: str,
     f, a = pair
     fig, axes = plt.subplots(2, 1, figsize=(10, 6), sharex=True)
     sols = list(epochs["solution"].drop_duplicates())
-    kt = pair_kinematics(epochs, sols[0], f, a, lead, source="true", length_ahead_m=length_m, config=cfg)
+    kt = pair_kinematics(epochs, sols[0], f, a, lead, source="true", **geometry, config=cfg)
     axes[0].plot(kt["t_s"], kt["ttc_s"], color="k", lw=1.6, label="truth")
     axes[1].plot(kt["t_s"], kt["gap_m"], color="k", lw=1.6, label="truth")
     for i, sol in enumerate(sols):
-        ke = pair_kinematics(epochs, sol, f, a, lead, source="est", length_ahead_m=length_m, config=cfg)
+        ke = pair_kinematics(epochs, sol, f, a, lead, source="est", **geometry, config=cfg)
         axes[0].plot(ke["t_s"], ke["ttc_s"], color=f"C{i}", lw=0.8, label=sol)
         axes[1].plot(ke["t_s"], ke["gap_m"], color=f"C{i}", lw=0.8, label=sol)
     axes[0].axhline(cfg.ttc_threshold_s, color="C3", ls="--", lw=0.8, label=f"TTC {cfg.ttc_threshold_s:g} s")
@@ -77,7 +77,7 @@ def _plot_ttc(epochs: pd.DataFrame, res: dict, pair: tuple[str, str], lead: str,
 
 
 def main(argv: list[str] | None = None) -> int:
-    from v2v.apps.fcw import FcwConfig, fcw_study, to_markdown
+    from v2v.apps.fcw import FcwConfig, antenna_arms_x_m, fcw_study, to_markdown
 
     ll = _lane_level_module()
     ap = argparse.ArgumentParser(description=__doc__.split("\n\n")[0])
@@ -106,8 +106,10 @@ def main(argv: list[str] | None = None) -> int:
         lead = str(truth.loc[truth["is_lead"].astype(bool), "vehicle"].iloc[0])
         if len(res["pairs"]):
             first = (str(res["pairs"]["follower"].iloc[0]), str(res["pairs"]["ahead"].iloc[0]))
-            length = float(truth.loc[truth["vehicle"] == first[1], "length_m"].iloc[0])
-            _plot_ttc(ep, res, first, lead, length, cfg, out / f"fcw_ttc_{variant}.png", f"{args.net} ({variant})")
+            arms = antenna_arms_x_m(truth)
+            geometry = {"length_ahead_m": float(truth.loc[truth["vehicle"] == first[1], "length_m"].iloc[0]),
+                        "arm_x_ahead_m": arms[first[1]], "arm_x_follower_m": arms[first[0]]}
+            _plot_ttc(ep, res, first, lead, geometry, cfg, out / f"fcw_ttc_{variant}.png", f"{args.net} ({variant})")
 
     def cat(x: list[pd.DataFrame]) -> pd.DataFrame:
         return pd.concat(x, ignore_index=True) if x else pd.DataFrame()

@@ -11,6 +11,7 @@ from v2v.apps.fcw import (
     BrakingEvent,
     BrakingInjector,
     FcwConfig,
+    antenna_arms_x_m,
     causal_slope,
     compare_warnings,
     detect_braking_events,
@@ -159,10 +160,10 @@ def test_fcw_study_end_to_end_on_a_braking_lead():
     truth = pd.concat([
         pd.DataFrame({"t_s": t, "vehicle": "c1.0", "cluster": "c1", "is_lead": True, "length_m": L_AHEAD,
                       "accel_mps2": np.where(t >= 1.0, -a, 0.0), "speed_mps": 15.0 - a * tb,
-                      "x_m": 0.0, "y_m": 0.0, "azimuth_rad": 0.0, "lane": "E_0"}),
+                      "x_m": 0.0, "y_m": 0.0, "front_x_m": 0.0, "front_y_m": 2.0, "azimuth_rad": 0.0, "lane": "E_0"}),
         pd.DataFrame({"t_s": t, "vehicle": "c1.1", "cluster": "c1", "is_lead": False, "length_m": L_AHEAD,
                       "accel_mps2": 0.0, "speed_mps": 15.0, "x_m": 0.0, "y_m": -(g + L_AHEAD),
-                      "azimuth_rad": 0.0, "lane": "E_0"}),
+                      "front_x_m": 0.0, "front_y_m": 2.0 - (g + L_AHEAD), "azimuth_rad": 0.0, "lane": "E_0"}),
     ], ignore_index=True)
     assert following_pairs(truth) == [("c1.1", "c1.0")]
     res = fcw_study(ep, truth, config=FcwConfig(velocity="filter"))
@@ -170,6 +171,25 @@ def test_fcw_study_end_to_end_on_a_braking_lead():
     assert s["truth_warnings"] == 1 and s["detected"] == 1 and s["missed"] == 0 and s["false"] == 0
     assert s["events_hit"] == 1 and s["event_warn_time_err_mean_s"] == 0.0
     assert s["gap_err_rms_m"] == pytest.approx(0.0, abs=1e-9)
+
+
+def test_gap_of_a_car_behind_a_truck_with_different_antenna_setbacks():
+    """A car (antenna 2.0 m behind its front bumper) 8 m behind a 12 m truck (antenna 1.0 m
+    behind), both heading east, closing at 5 m/s: car front at x = 0, antenna at -2; truck rear
+    at 8, front at 20, antenna at 19. Antennas 21 m apart; gap 21 - 12 - (-1 - (-2)) = 8 m,
+    TTC 8 / 5 = 1.6 s (with the lever arms taken as equal: 9 m and 1.8 s)."""
+    truth = pd.DataFrame({"t_s": 0.0, "vehicle": ["c1.0", "c1.1"], "x_m": [19.0, -2.0], "y_m": 5.0,
+                          "front_x_m": [20.0, 0.0], "front_y_m": 5.0, "azimuth_rad": np.pi / 2})
+    arms = antenna_arms_x_m(truth)
+    assert arms == {"c1.0": pytest.approx(-1.0), "c1.1": pytest.approx(-2.0)}
+    ep = pd.DataFrame({"t_s": [0.0], "solution": "S", "vehicle": "c1.1", "initialized": True,
+                       "true_e_m": -21.0, "true_n_m": 0.0, "true_u_m": 0.0, "true_ve_mps": 5.0, "true_vn_mps": 0.0})
+    k = pair_kinematics(ep, "S", "c1.1", "c1.0", "c1.0", source="true", length_ahead_m=12.0,
+                        arm_x_ahead_m=arms["c1.0"], arm_x_follower_m=arms["c1.1"], config=FcwConfig(velocity="filter"))
+    assert k["gap_m"].tolist() == pytest.approx([8.0]) and k["ttc_s"].tolist() == pytest.approx([1.6])
+    k_equal = pair_kinematics(ep, "S", "c1.1", "c1.0", "c1.0", source="true", length_ahead_m=12.0,
+                              config=FcwConfig(velocity="filter"))
+    assert k_equal["gap_m"].tolist() == pytest.approx([9.0]) and k_equal["ttc_s"].tolist() == pytest.approx([1.8])
 
 
 def test_braking_injector_ramps_down_and_releases():

@@ -6,9 +6,11 @@ For a *following* vehicle ``f`` and the vehicle *ahead* of it in the same lane `
 relative (antenna) positions ``r`` and velocities ``v`` of both with respect to the cluster
 lead (the lead's own are zero), the follower's view of the vehicle ahead is
 
-* range ``d = |r_a - r_f|`` (horizontal), bumper-to-bumper gap ``g = d - L_a`` (``L_a`` the
-  length of the vehicle ahead; both antennas sit at the same offset behind the front bumper,
-  so the antenna-to-antenna distance is the front-to-front distance);
+* range ``d = |r_a - r_f|`` (horizontal), bumper-to-bumper gap ``g = d - L_a - (x_a - x_f)``
+  (``L_a`` the length of the vehicle ahead; ``x_a``, ``x_f`` the antennas' forward lever arms
+  from their front bumpers, negative behind them: ``d - (x_a - x_f)`` is the front-to-front
+  distance of two vehicles in line; a car's antenna 2.0 m behind its bumper following a
+  truck's 1.0 m behind: ``g = d - L_a - 1.0``; equal lever arms: ``g = d - L_a``);
 * closing speed ``c = -dd/dt = -(v_a - v_f) . (r_a - r_f) / d``;
 * time to collision ``TTC = g / c`` when ``c > 0`` (infinite otherwise, 0 once ``g <= 0``).
 
@@ -149,13 +151,16 @@ def _vehicle_states(epochs: pd.DataFrame, solution: str, vehicle: str, lead: str
 
 
 def pair_kinematics(epochs: pd.DataFrame, solution: str, follower: str, ahead: str, lead: str, *,
-                    source: Literal["est", "true"], length_ahead_m: float,
-                    config: FcwConfig = FcwConfig()) -> pd.DataFrame:
+                    source: Literal["est", "true"], length_ahead_m: float, arm_x_ahead_m: float = 0.0,
+                    arm_x_follower_m: float = 0.0, config: FcwConfig = FcwConfig()) -> pd.DataFrame:
     """Range, gap, closing speed, TTC and warning of ``follower`` w.r.t. ``ahead`` over time.
 
     ``source="est"`` uses the solution's estimates, ``"true"`` the truth columns of the same
-    rows. Returns columns ``t_s``, ``available``, ``range_m``, ``gap_m``, ``closing_mps``,
-    ``ttc_s``, ``warn`` (``available`` = both vehicles' estimates initialized).
+    rows. ``arm_x_*_m``: the two antennas' forward lever arms from their front bumpers
+    (negative behind; :func:`antenna_arms_x_m` reads them from truth); only their difference
+    enters the gap (module docstring). Returns columns ``t_s``, ``available``, ``range_m``,
+    ``gap_m``, ``closing_mps``, ``ttc_s``, ``warn`` (``available`` = both vehicles' estimates
+    initialized).
     """
     fa = _vehicle_states(epochs, solution, follower, lead, source)
     aa = _vehicle_states(epochs, solution, ahead, lead, source)
@@ -177,7 +182,7 @@ def pair_kinematics(epochs: pd.DataFrame, solution: str, follower: str, ahead: s
     else:
         r = np.where(ok, rng, np.nan)
         closing = -causal_slope(t, r, config.fd_window_s)
-    gap = rng - length_ahead_m
+    gap = rng - length_ahead_m - (arm_x_ahead_m - arm_x_follower_m)
     gap = np.where(ok, gap, np.nan)
     closing = np.where(ok, closing, np.nan)
     return pd.DataFrame({
@@ -248,6 +253,16 @@ def detect_braking_events(truth: pd.DataFrame, config: FcwConfig = FcwConfig()) 
     return pd.DataFrame(rows, columns=["vehicle", "t_start_s", "t_end_s", "min_accel_mps2", "speed_start_mps"])
 
 
+def antenna_arms_x_m(truth: pd.DataFrame) -> dict[str, float]:
+    """Each vehicle's antenna lever arm along its heading from its front bumper (m, negative
+    behind), from ``truth.parquet``: the median over its rows of ``(x - front_x) sin(az) +
+    (y - front_y) cos(az)``. Exact for an antenna on the centre line; a lateral arm ``y``
+    adds ``y`` times the grid convergence (< 1e-3 m on the shipped nets)."""
+    along = (truth["x_m"] - truth["front_x_m"]) * np.sin(truth["azimuth_rad"]) + (
+        truth["y_m"] - truth["front_y_m"]) * np.cos(truth["azimuth_rad"])
+    return {str(k): float(v) for k, v in along.groupby(truth["vehicle"]).median().items()}
+
+
 def following_pairs(truth: pd.DataFrame, cluster: str | None = None) -> list[tuple[str, str]]:
     """(follower, ahead) pairs: for each vehicle, the cluster vehicle most often directly ahead of
     it in the same lane (same edge and lane index, ahead along the follower's heading).
@@ -289,9 +304,10 @@ def fcw_study(epochs: pd.DataFrame, truth: pd.DataFrame, *, config: FcwConfig = 
     Returns ``{"pairs": per (solution, follower) table, "solutions": per solution totals,
     "events": per (solution, braking event) rows, "braking": the braking events}``.
     ``pairs`` defaults to :func:`following_pairs` per cluster. Lengths of the vehicles ahead
-    come from ``truth.length_m``.
+    come from ``truth.length_m``, the antennas' lever arms from :func:`antenna_arms_x_m`.
     """
     lengths = truth.groupby("vehicle")["length_m"].first().to_dict()
+    arms = antenna_arms_x_m(truth)
     leads = truth[truth["is_lead"].astype(bool)].groupby("cluster")["vehicle"].first().to_dict()
     cluster_of = truth.groupby("vehicle")["cluster"].first().to_dict()
     if pairs is None:
@@ -301,8 +317,9 @@ def fcw_study(epochs: pd.DataFrame, truth: pd.DataFrame, *, config: FcwConfig = 
     for sol in epochs["solution"].drop_duplicates():
         for f, a in pairs:
             lead = leads[cluster_of[f]]
-            kt = pair_kinematics(epochs, sol, f, a, lead, source="true", length_ahead_m=lengths[a], config=config)
-            ke = pair_kinematics(epochs, sol, f, a, lead, source="est", length_ahead_m=lengths[a], config=config)
+            geometry = {"length_ahead_m": lengths[a], "arm_x_ahead_m": arms[a], "arm_x_follower_m": arms[f]}
+            kt = pair_kinematics(epochs, sol, f, a, lead, source="true", **geometry, config=config)
+            ke = pair_kinematics(epochs, sol, f, a, lead, source="est", **geometry, config=config)
             t = kt["t_s"].to_numpy()
             wt, we = kt["warn"].to_numpy(bool), ke["warn"].to_numpy(bool)
             cmp = compare_warnings(t, wt, we, config.match_tolerance_s)
