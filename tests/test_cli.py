@@ -66,12 +66,23 @@ def test_out_that_is_not_a_run_folder_is_refused_and_left_alone(tmp_path, capsys
     (docs / "thesis.txt").write_text("mine")
     afile = tmp_path / "afile"
     afile.write_text("mine")
-    for out in (docs, afile, afile / "run"):
+    # a previous run's folder with the user's notes added, and one a sweep was written into
+    noted, swept = tmp_path / "noted", tmp_path / "swept"
+    for d in (noted, swept):
+        d.mkdir()
+        (d / "summary.json").write_text("{}")
+        (d / "scenario.resolved.toml").write_text("")
+    (noted / "notes.txt").write_text("mine")
+    (swept / "runs").mkdir()
+    (swept / "runs.parquet").write_text("mine")
+    for out in (docs, afile, afile / "run", noted, swept):
         assert main(["demo", "--quiet", "--no-replay", "--set", "duration_s=1", "--out", str(out)]) == 2
         err = [ln for ln in capsys.readouterr().err.splitlines() if ln.strip()]
         assert len(err) == 1 and err[0].startswith("v2v: error: --out: ") and "fix:" in err[0]
     assert (docs / "thesis.txt").read_text() == "mine" and afile.read_text() == "mine"
-    assert sorted(q.name for q in tmp_path.iterdir()) == ["afile", "docs"]  # no staging or .old folder
+    assert (noted / "notes.txt").read_text() == "mine" and (swept / "runs.parquet").read_text() == "mine"
+    # no staging or .old folder
+    assert sorted(q.name for q in tmp_path.iterdir()) == ["afile", "docs", "noted", "swept"]
 
 
 def test_bad_set_override_and_missing_file(tmp_path):

@@ -78,13 +78,16 @@ def atomic_write_parquet(path: Path, table: Any) -> None:
 
 
 RUN_FOLDER_MARKERS = ("summary.json", "scenario.resolved.toml")
+# everything a run writes into its folder (README, Outputs)
+RUN_FILES = frozenset({*RUN_FOLDER_MARKERS, "truth.parquet", "epochs.parquet", "measurements.parquet", "replay.rrd"})
 
 
 def check_run_target(final: Path, *, what: str = "--out") -> None:
     """A run may go to ``final`` only if it does not exist, is an empty folder, or is a
-    previous run's folder (it holds ``summary.json`` or ``scenario.resolved.toml``), which the
-    new run replaces; anything else (a file, a folder of other things) is the user's and is
-    refused before any work is done."""
+    previous run's folder (it holds ``summary.json`` or ``scenario.resolved.toml`` and nothing
+    but the files a run writes, :data:`RUN_FILES`), which the new run replaces; anything else
+    (a file, a folder of other things, a run folder with files added to it) is the user's and
+    is refused before any work is done."""
     from v2v.errors import UserError
 
     final = Path(final)
@@ -93,12 +96,19 @@ def check_run_target(final: Path, *, what: str = "--out") -> None:
     if not final.is_dir():
         raise UserError(f"{final} exists and is not a folder", field=what, fix="give a new folder or a previous run's folder")
     try:
-        entries = list(final.iterdir())
+        entries = sorted(e.name for e in final.iterdir())
     except OSError as exc:
         raise UserError(f"cannot read {final} ({exc.strerror or exc})", field=what, fix="give a readable folder") from None
-    if entries and not any((final / m).is_file() for m in RUN_FOLDER_MARKERS):
+    if not entries:
+        return
+    if not any((final / m).is_file() for m in RUN_FOLDER_MARKERS):
         raise UserError(f"{final} exists and is not a v2v run folder (it would be replaced)", field=what,
                         fix="give a new folder, an empty one, or a previous run's folder")
+    foreign = [e for e in entries if e not in RUN_FILES or not (final / e).is_file()]
+    if foreign:
+        listed = ", ".join(foreign[:3]) + (f" and {len(foreign) - 3} more" if len(foreign) > 3 else "")
+        raise UserError(f"{final} is a run folder that also holds {listed}, which replacing it would delete",
+                        field=what, fix="give a new folder, or move those out of it first")
 
 
 class RunFolder:
