@@ -236,6 +236,10 @@ def test_other_seed_changes_measurements(short_run, tmp_path):
     assert n > 500
     r = np.corrcoef(both.iloc[:, 0], both.iloc[:, 1])[0, 1]
     assert abs(r) < 4 / np.sqrt(n), (r, n)
+    # no solution: the epochs table is still there, without rows, with the columns of the one above
+    e1, e3 = pd.read_parquet(out / "epochs.parquet"), pd.read_parquet(out3 / "epochs.parquet")
+    assert len(e3) == 0 and set(e3.columns) <= set(e1.columns) and {"along_err_m", "cluster", "nees_pos"} <= set(e3.columns)
+    assert dict(e3.dtypes) == {c: e1.dtypes[c] for c in e3.columns}
 
 
 def test_vehicle_leaving_and_rejoining_the_cluster(tmp_path):

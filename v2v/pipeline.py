@@ -722,6 +722,22 @@ def _blocks_frame(blocks: Sequence[EpochBlock]) -> pd.DataFrame:
     return pd.DataFrame(cols)
 
 
+def empty_epochs_frame() -> pd.DataFrame:
+    """``epochs.parquet``'s table of a run that estimated nothing (no solution, or no cluster
+    with a follower): no rows, the columns every epochs table has (the per-type update
+    counts and azimuth errors depend on the solutions, so they are not there), typed as
+    :func:`_blocks_frame` types them."""
+    import pandas as pd
+
+    cols: dict[str, Any] = {"t_s": np.zeros(0), "cluster": pd.Series([], dtype="str"),
+                            "solution": pd.Series([], dtype="str"), "vehicle": pd.Series([], dtype="str"),
+                            "initialized": np.zeros(0, dtype=bool)}
+    cols.update({c: np.zeros(0) for c in EPOCH_COLUMNS})
+    cols.update({"true_lane_index": np.zeros(0, dtype=np.int64), "lead_lane_index": np.zeros(0, dtype=np.int64),
+                 "lane_width_m": np.zeros(0), "integrity_available": np.zeros(0, dtype=bool)})
+    return pd.DataFrame(cols)
+
+
 @dataclass
 class SolutionRecord:
     """Per-epoch estimates and per-update diagnostics of one solution.

@@ -339,6 +339,7 @@ def _run_scenario(scenario: Scenario, out_dir: Path, *, quiet: bool, replay: boo
         build_gnss,
         build_uwb,
         child_seeds,
+        empty_epochs_frame,
     )
     from v2v.sensors.gnss.spp import SppChain
     from v2v.sensors.gnss.time import utc_to_gps_s
@@ -632,8 +633,9 @@ def _run_scenario(scenario: Scenario, out_dir: Path, *, quiet: bool, replay: boo
         epochs_df = pd.concat(records, ignore_index=True) if records else pd.DataFrame()
         records.clear()
         lane_records: list[dict[str, Any]] = []
+        # (nothing estimated: the table without rows, so that every run has one)
+        atomic_write_parquet(tmp / "epochs.parquet", epochs_df if len(epochs_df) else empty_epochs_frame())
         if len(epochs_df):
-            atomic_write_parquet(tmp / "epochs.parquet", epochs_df)
             # per-update statistics from the compact logs, one kind of one solution at a time
             meas = {key: rec.log.kind_statistics() for key, rec in recs.items()}
             sol_stats = solution_statistics(epochs_df, {}, measurements=meas)
