@@ -3,8 +3,11 @@ and never a run folder left behind that looks complete."""
 
 from __future__ import annotations
 
+import os
+import signal
 import subprocess
 import sys
+import time
 from pathlib import Path
 
 import pytest
@@ -83,6 +86,32 @@ def test_out_that_is_not_a_run_folder_is_refused_and_left_alone(tmp_path, capsys
     assert (noted / "notes.txt").read_text() == "mine" and (swept / "runs.parquet").read_text() == "mine"
     # no staging or .old folder
     assert sorted(q.name for q in tmp_path.iterdir()) == ["afile", "docs", "noted", "swept"]
+
+
+@pytest.mark.sumo
+@pytest.mark.parametrize(("sig", "code", "says"), [(signal.SIGTERM, 143, "terminated"), (signal.SIGINT, 130, "interrupted")])
+def test_a_killed_run_leaves_no_staging_folder(tmp_path, sig, code, says):
+    """SIGTERM (kill, timeout, a batch system) ends a run as Ctrl-C does: one line, exit 128 +
+    the signal's number, and neither the run folder nor its hidden staging folder left."""
+    out = tmp_path / "r"
+    env = {**os.environ, "PYTHONUNBUFFERED": "1"}
+    p = subprocess.Popen([sys.executable, "-m", "v2v", "demo", "--set", "duration_s=600", "--out", str(out)],
+                         cwd=tmp_path, stdout=subprocess.DEVNULL, stderr=subprocess.PIPE, text=True, env=env,
+                         preexec_fn=lambda: signal.signal(signal.SIGINT, signal.SIG_DFL))
+    try:
+        deadline = time.monotonic() + 120.0  # the staging folder appears once the run has started
+        while not any(q.name.endswith(".partial") for q in tmp_path.iterdir()) and time.monotonic() < deadline:
+            assert p.poll() is None, p.stderr.read() if p.stderr else ""
+            time.sleep(0.05)
+        time.sleep(0.5)
+        p.send_signal(sig)
+        _, err = p.communicate(timeout=60)
+    finally:
+        p.kill()
+    assert p.returncode == code, err
+    lines = [ln for ln in err.splitlines() if ln.strip()]  # (progress lines, then the last one)
+    assert lines and lines[-1].startswith(f"v2v: {says}") and "Traceback" not in err
+    assert list(tmp_path.iterdir()) == []
 
 
 def test_bad_set_override_and_missing_file(tmp_path):

@@ -230,35 +230,59 @@ def _ephemeris(rinex: Path | None, t_gps: float):
     return NominalConstellation(t_gps)
 
 
+class _Terminated(KeyboardInterrupt):
+    """SIGTERM (``kill``, ``timeout``, a batch system's end of job), handled as Ctrl-C is: a run
+    removes its staging folder, a sweep cancels its pending runs and keeps its table consistent."""
+
+
+def _raise_terminated(signum: int, frame: object) -> None:
+    raise _Terminated
+
+
 def main(argv: list[str] | None = None) -> int:
+    import signal
+    import threading
+
     parser = build_parser()
     args = parser.parse_args(argv)
+    in_main = threading.current_thread() is threading.main_thread()
+    old_sigterm = signal.signal(signal.SIGTERM, _raise_terminated) if in_main else None
     try:
-        if args.cmd == "run":
-            return _cmd_run(args)
-        if args.cmd == "demo":
-            args.scenario = None
-            if args.out is None:
-                args.out = Path("runs") / "demo"
-            return _cmd_run(args, demo=True)
-        if args.cmd == "nets":
-            return _cmd_nets(args)
-        if args.cmd == "scenario":
-            return _cmd_scenario(args)
-        if args.cmd == "replay":
-            return _cmd_replay(args)
-        if args.cmd == "sweep":
-            from v2v.sweep import cmd_sweep
-
-            return cmd_sweep(args)
-        if args.cmd == "sky":
-            return _cmd_sky(args)
+        return _dispatch(args)
     except UserError as exc:
         print(f"v2v: error: {exc.one_line()}", file=sys.stderr)
         return EXIT_USER_ERROR
+    except _Terminated:
+        print("v2v: terminated (SIGTERM); no partial run folder was kept", file=sys.stderr)
+        return 128 + signal.SIGTERM
     except KeyboardInterrupt:
         print("v2v: interrupted; no partial run folder was kept", file=sys.stderr)
         return 130
+    finally:
+        if in_main:
+            signal.signal(signal.SIGTERM, old_sigterm)
+
+
+def _dispatch(args: argparse.Namespace) -> int:
+    if args.cmd == "run":
+        return _cmd_run(args)
+    if args.cmd == "demo":
+        args.scenario = None
+        if args.out is None:
+            args.out = Path("runs") / "demo"
+        return _cmd_run(args, demo=True)
+    if args.cmd == "nets":
+        return _cmd_nets(args)
+    if args.cmd == "scenario":
+        return _cmd_scenario(args)
+    if args.cmd == "replay":
+        return _cmd_replay(args)
+    if args.cmd == "sweep":
+        from v2v.sweep import cmd_sweep
+
+        return cmd_sweep(args)
+    if args.cmd == "sky":
+        return _cmd_sky(args)
     raise AssertionError(args.cmd)
 
 
