@@ -179,6 +179,21 @@ def test_replay_command_points_at_the_recording(tmp_path):
         with pytest.raises(UserError) as ei:
             replay_command(tmp_path, web=True, port=port)
         assert ei.value.field == "--port"
+    native = replay_command(tmp_path)
+    assert native[-1] == str(tmp_path / "replay.rrd") and native[native.index("--bind") + 1] == "127.0.0.1"
+
+
+def test_replay_without_a_display_says_to_use_web(tmp_path, monkeypatch, capsys):
+    """No display (a server, CI, SSH without X forwarding): one line pointing to --web instead of
+    rerun's multi-line window-system error; --port without --web is refused, not ignored."""
+    (tmp_path / "replay.rrd").write_bytes(b"")
+    for k in ("DISPLAY", "WAYLAND_DISPLAY", "WAYLAND_SOCKET"):
+        monkeypatch.delenv(k, raising=False)
+    monkeypatch.setattr(sys, "platform", "linux")
+    for extra, field in (([], "replay"), (["--port", "9123"], "--port")):
+        assert main(["replay", str(tmp_path), *extra]) == 2
+        err = [ln for ln in capsys.readouterr().err.splitlines() if ln.strip()]
+        assert len(err) == 1 and err[0].startswith(f"v2v: error: {field}: ") and "--web" in err[0], err
 
 
 def _readme_scenario_block() -> str:
@@ -296,11 +311,20 @@ def test_study_file_given_to_run_says_to_use_sweep(tmp_path, capsys):
 
 
 @pytest.mark.parametrize(("extra", "field"), [(["--mask-deg", "95"], "--mask-deg"), (["--mask-deg", "nan"], "--mask-deg"),
-                                              (["--mask-deg", "-1"], "--mask-deg"), (["--height", "inf"], "--height")])
+                                              (["--mask-deg", "-1"], "--mask-deg"), (["--height", "inf"], "--height"),
+                                              (["--height=-1e9"], "--height"), (["--height", "1e300"], "--height")])
 def test_sky_refuses_a_mask_or_height_that_is_not_physical(extra, field, capsys):
     assert main(["sky", "--lat", "51", "--lon", "0", "--time", "2021-04-28T19:00:00Z", *extra]) == 2
     err = [ln for ln in capsys.readouterr().err.splitlines() if ln.strip()]
     assert len(err) == 1 and err[0].startswith(f"v2v: error: {field}: ") and "fix:" in err[0], err
+
+
+def test_sky_refuses_a_place_given_twice(capsys):
+    """--scenario gives the place and time: --lat / --lon / --time / --height with it are refused, not ignored."""
+    sc = Path(__file__).resolve().parents[1] / "scenarios" / "urban_canyon.toml"
+    assert main(["sky", "--scenario", str(sc), "--lat", "10", "--lon", "10"]) == 2
+    err = [ln for ln in capsys.readouterr().err.splitlines() if ln.strip()]
+    assert len(err) == 1 and err[0].startswith("v2v: error: --lat: --lat, --lon and --scenario") and "fix:" in err[0], err
 
 
 @pytest.mark.sumo

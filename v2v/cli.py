@@ -8,7 +8,6 @@ exit 1, so they can be reported.
 from __future__ import annotations
 
 import argparse
-import math
 import sys
 from pathlib import Path
 
@@ -58,7 +57,7 @@ def build_parser() -> argparse.ArgumentParser:
     rp = sub.add_parser("replay", help="open a run's replay.rrd in the rerun viewer (or serve the web viewer)")
     rp.add_argument("run_dir", type=Path, help="a run folder (or a .rrd file)")
     rp.add_argument("--web", action="store_true", help="serve the web viewer on 127.0.0.1 instead of a native window")
-    rp.add_argument("--port", type=int, default=9090, help="web viewer port (with --web)")
+    rp.add_argument("--port", type=int, default=None, help="web viewer port (with --web; default 9090)")
 
     s = sub.add_parser("scenario", help="scenario files")
     ssub = s.add_subparsers(dest="scenario_cmd", required=True, parser_class=_Parser)
@@ -73,7 +72,7 @@ def build_parser() -> argparse.ArgumentParser:
     k = sub.add_parser("sky", help="satellites in view at a place and time (or a scenario's start)")
     k.add_argument("--lat", type=float, help="latitude, degrees")
     k.add_argument("--lon", type=float, help="longitude, degrees")
-    k.add_argument("--height", type=float, default=0.0, help="ellipsoidal height, m")
+    k.add_argument("--height", type=float, default=None, help="ellipsoidal height, m (default 0; -500 to 100000)")
     k.add_argument("--time", help="UTC time, ISO 8601 (e.g. 2021-04-28T19:00:00Z)")
     k.add_argument("--scenario", type=Path, help="take place and time from a scenario's network and start_utc")
     k.add_argument("--rinex", type=Path, help="RINEX navigation file (default: the built-in nominal constellation)")
@@ -145,7 +144,8 @@ def _cmd_nets(args) -> int:
 
 
 def replay_command(run_dir: Path, web: bool = False, port: int = 9090) -> list[str]:
-    """The rerun command that opens a run's recording (native viewer, or web viewer on loopback)."""
+    """The rerun command that opens a run's recording (native viewer, or web viewer; either
+    serves on loopback only: rerun's own default is every interface)."""
     import shutil
 
     if web and not 1 <= port <= 65535:
@@ -156,15 +156,23 @@ def replay_command(run_dir: Path, web: bool = False, port: int = 9090) -> list[s
     exe = shutil.which("rerun", path=str(Path(sys.executable).parent)) or shutil.which("rerun") or "rerun"
     if web:
         return [exe, "--serve-web", "--bind", "127.0.0.1", "--web-viewer-port", str(port), str(rrd)]
-    return [exe, str(rrd)]
+    return [exe, "--bind", "127.0.0.1", str(rrd)]
 
 
 def _cmd_replay(args) -> int:
+    import os
     import subprocess
 
-    cmd = replay_command(args.run_dir, args.web, args.port)
+    if args.port is not None and not args.web:
+        raise UserError("--port is the web viewer's", field="--port", fix="add --web, or leave --port out")
+    port = 9090 if args.port is None else args.port
+    cmd = replay_command(args.run_dir, args.web, port)
+    if not args.web and sys.platform.startswith("linux") and not any(
+            os.environ.get(k) for k in ("DISPLAY", "WAYLAND_DISPLAY", "WAYLAND_SOCKET")):
+        raise UserError("no display for the native viewer (DISPLAY and WAYLAND_DISPLAY are not set)", field="replay",
+                        fix=f"use --web and open http://127.0.0.1:{port} (on a remote machine through ssh -L {port}:127.0.0.1:{port})")
     if args.web:
-        print(f"serving the web viewer on http://127.0.0.1:{args.port} (Ctrl-C to stop)", file=sys.stderr)
+        print(f"serving the web viewer on http://127.0.0.1:{port} (Ctrl-C to stop)", file=sys.stderr)
     return subprocess.call(cmd)
 
 
@@ -191,6 +199,11 @@ def _cmd_sky(args) -> int:
         from v2v.config.scenario import load_scenario
         from v2v.run import resolve_network
 
+        given = [f"--{n}" for n in ("lat", "lon", "height", "time") if getattr(args, n) is not None]
+        if given:
+            raise UserError(f"{', '.join(given)} and --scenario both give the place or time", field=given[0],
+                            fix="give --lat, --lon, --time (and --height), or --scenario alone")
+
         sc = load_scenario(args.scenario)
         net = resolve_network(sc)
         lat, lon = net.georef.xy_to_geodetic(0.0, 0.0)
@@ -202,7 +215,7 @@ def _cmd_sky(args) -> int:
             raise UserError("give --lat, --lon and --time, or --scenario", field="sky", fix="e.g. v2v sky --lat 51.08 --lon -114.13 --time 2021-04-28T19:00:00Z")
         if not (-90 <= args.lat <= 90 and -180 <= args.lon <= 180):
             raise UserError("latitude/longitude out of range", field="--lat/--lon", fix="degrees, lat in [-90, 90], lon in [-180, 180]")
-        lat_deg, lon_deg, h = args.lat, args.lon, args.height
+        lat_deg, lon_deg, h = args.lat, args.lon, 0.0 if args.height is None else args.height
         try:
             when = datetime.fromisoformat(args.time.replace("Z", "+00:00"))
         except ValueError:
@@ -210,8 +223,9 @@ def _cmd_sky(args) -> int:
     if not 0.0 <= args.mask_deg < 90.0:  # (also NaN)
         raise UserError(f"elevation mask {args.mask_deg} deg is not in [0, 90)", field="--mask-deg",
                         fix="give degrees above the horizon, e.g. --mask-deg 10")
-    if not math.isfinite(h):
-        raise UserError(f"height {h} is not a finite number", field="--height", fix="give metres above the ellipsoid")
+    if not -500.0 <= h <= 100e3:  # (also NaN)
+        raise UserError(f"height {h} m is not near the Earth's surface", field="--height",
+                        fix="give metres above the ellipsoid, from -500 to 100000")
     t_gps = utc_to_gps_s(when)
     eph = _ephemeris(args.rinex, t_gps)
     df = sky_view(np.radians(lat_deg), np.radians(lon_deg), h, t_gps, eph, np.radians(args.mask_deg))
