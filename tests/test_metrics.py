@@ -163,3 +163,13 @@ def test_solution_statistics_by_hand():
     w = solution_statistics(df, {})["S1"]["vehicles"]["c1.1"]
     assert w["availability"] == 0.0 and w["along"]["n"] == 0 and np.isnan(w["along_sigma_mean_m"])
     assert "along_exceeds_3sigma" not in w
+
+
+def test_printed_table_lists_vehicles_in_departure_order():
+    """c1.1 ... c1.12: departure order is numeric; text order would put c1.10-c1.12 before c1.2."""
+    from v2v.metrics.summary import paper_table
+
+    e = {"along": {"mean": 0.0, "std": 0.0}, "across": {"mean": 0.0, "std": 0.0}, "availability": 1.0}
+    ids = [f"c1.{k}" for k in range(1, 13)]
+    table = paper_table({"GPS": {"vehicles": {v: e for v in sorted(ids)}}})
+    assert [ln.split()[1] for ln in table.splitlines()[1:]] == ids

@@ -2,6 +2,7 @@
 
 from __future__ import annotations
 
+import re
 from typing import Any
 
 import numpy as np
@@ -131,14 +132,21 @@ def update_kind_statistics(acc: np.ndarray, faulty: np.ndarray, nis: np.ndarray,
     }
 
 
+def vehicle_order(vehicle: str) -> tuple[str | int, ...]:
+    """Sort key of a vehicle id in departure order: its digit runs compared as numbers
+    (``c1.2`` before ``c1.10``, where text order puts ``c1.10`` first)."""
+    return tuple(int(part) if part.isdigit() else part for part in re.split(r"(\d+)", vehicle))
+
+
 def paper_table(stats: dict[str, Any]) -> str:
     """Along/across mean and std per solution and vehicle (Petovello et al. tables 3-8), metres;
-    with carrier-phase solutions also the fix rate and the wrong-fix rate (``ambiguity``)."""
+    with carrier-phase solutions also the fix rate and the wrong-fix rate (``ambiguity``);
+    vehicles in departure order (:func:`vehicle_order`)."""
     phase = any("ambiguity" in e for s in stats.values() for e in s["vehicles"].values())
     head = f"{'solution':24s} {'vehicle':8s} {'along mean':>10s} {'along std':>9s} {'across mean':>11s} {'across std':>10s} {'avail':>6s}"
     lines = [head + (f" {'fix':>5s} {'wrong':>6s}" if phase else "")]
     for sol, s in stats.items():
-        for veh, e in s["vehicles"].items():
+        for veh, e in sorted(s["vehicles"].items(), key=lambda item: vehicle_order(item[0])):
             a, c = e["along"], e["across"]
             line = f"{sol:24s} {veh:8s} {a['mean']:10.3f} {a['std']:9.3f} {c['mean']:11.3f} {c['std']:10.3f} {e['availability']:6.2f}"
             amb = e.get("ambiguity")
