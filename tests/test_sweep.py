@@ -89,6 +89,7 @@ def test_grid_values_round_trip_through_set_syntax(value):
     ('seeds = [1, 1]\n', "seeds"),
     ('base = "nowhere.toml"\n', "base"),
     ('[grid]\n"seed" = [1, 2]\n', "grid.seed"),
+    ('[set]\nseed = 99\n', "set.seed"),  # (it would be silently replaced by each run's seed from seeds)
 ])
 def test_bad_study_fails_up_front_naming_the_field(tmp_path, text, field):
     study = tmp_path / "study.toml"
@@ -353,12 +354,58 @@ def test_second_sweep_on_a_busy_folder_stops_with_one_line(tiny_study, tmp_path,
     out.mkdir()
     with _FolderLock(out):
         assert _cli(["sweep", str(tiny_study), "--out", str(out), "--quiet"]) == 2
+        assert sorted(p.name for p in out.iterdir()) == [".sweep.lock"]  # the holder's lock, and nothing else
     err = capsys.readouterr().err.strip().splitlines()
     assert len(err) == 1 and "--out" in err[0] and "another sweep" in err[0] and f"pid {__import__('os').getpid()}" in err[0]
-    assert sorted(p.name for p in out.iterdir()) == [".sweep.lock"]
+    assert list(out.iterdir()) == [], "the lock file goes with its release"
 
 
 # --------------------------------------------------------------------------- bad input, one line each
+
+
+def test_host_the_local_cluster_cannot_use_is_one_line_and_leaves_nothing(tiny_study, tmp_path, monkeypatch, capsys):
+    """--host that does not resolve: refused before anything is written (the real command: exit
+    2, one line, no traceback). Should the cluster still fail to start (here the probe is
+    skipped), that is one line too, and the folder's lock is released and removed."""
+    out = tmp_path / "new"
+    cmd = [str(Path(sys.executable).with_name("v2v")), "sweep", str(tiny_study), "--out", str(out), "--workers", "1",
+           "--host", "999.1.1.1"]
+    proc = subprocess.run(cmd, capture_output=True, text=True, timeout=120)
+    assert proc.returncode == 2 and proc.stdout == "", proc.stderr
+    assert proc.stderr.count("\n") == 1 and proc.stderr.startswith("v2v: error: --host: ") and "127.0.0.1" in proc.stderr
+    assert not out.exists()
+    import v2v.sweep as sweep_mod
+
+    monkeypatch.setattr(sweep_mod, "_check_host", lambda host: None)
+    (tmp_path / "empty").mkdir()
+    for out in (tmp_path / "empty", tmp_path / "new"):
+        assert _cli(["sweep", str(tiny_study), "--out", str(out), "--workers", "1", "--host", "999.1.1.1", "--quiet"]) == 2
+        assert "the local cluster did not start" in _one_error_line(capsys, "--host")
+    assert list((tmp_path / "empty").iterdir()) == [] and not (tmp_path / "new").exists()
+
+
+@pytest.mark.sumo
+def test_out_of_another_study_or_of_a_run_is_refused_and_the_same_study_resumes(local_sweep, tmp_path, capsys):
+    """A sweep never replaces another study's runs.parquet / sweep.json (orphaning its run
+    folders) nor writes into a single run's folder: one line naming --out, nothing written. The
+    same study (also a copy of its file elsewhere) resumes there."""
+    assert not (local_sweep / ".sweep.lock").exists(), "a finished sweep leaves no lock file"
+    out = tmp_path / "sw"
+    shutil.copytree(local_sweep, out)
+    before = {p: p.read_bytes() for p in (out / "runs.parquet", out / "sweep.json")}
+    other = _write(tmp_path / "other.toml", TINY.replace("duration_s = 5.0", "duration_s = 3.0"))
+    assert _cli(["sweep", str(other), "--out", str(out), "--quiet"]) == 2
+    assert "holds the sweep of study" in _one_error_line(capsys, "--out")
+    assert {p: p.read_bytes() for p in before} == before and sorted(p.name for p in out.iterdir()) == [
+        "runs", "runs.parquet", "sweep.json"]
+    run_dir = next((out / "runs").iterdir())
+    listing = sorted(p.name for p in run_dir.iterdir())
+    assert _cli(["sweep", str(other), "--out", str(run_dir), "--quiet"]) == 2
+    assert "is a run's folder" in _one_error_line(capsys, "--out")
+    assert sorted(p.name for p in run_dir.iterdir()) == listing
+    copy = _write(tmp_path / "copy_of_tiny.toml", TINY)
+    res = run_study(copy, out)
+    assert (res.executed, res.skipped) == (0, 4)
 
 
 def _one_error_line(capsys, field: str) -> str:

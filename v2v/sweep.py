@@ -40,7 +40,9 @@ Output folder::
 and never reuses a stale run, while a v2v update does not invalidate finished runs (use a new
 ``--out`` to redo them). Rerunning a study skips runs whose folder holds a readable
 ``summary.json``; ``runs.parquet`` is rewritten atomically as runs complete (Ctrl-C leaves it
-consistent: finished runs are in it, unfinished ones are not).
+consistent: finished runs are in it, unfinished ones are not). ``--out`` is new, empty, or this
+study's sweep folder: another study's sweep folder or a single run's folder is refused before
+anything is written (:func:`_check_out_folder`).
 """
 
 from __future__ import annotations
@@ -235,6 +237,10 @@ def load_study(path: str | Path) -> Study:
             raise UserError(f"{table} must be a table", field=table, fix=f"write [{table}] followed by key = value lines")
     fixed = _flatten_table(data.get("set", {}), "", "set", leaf_lists=False)
     grid = _flatten_table(data.get("grid", {}), "", "grid", leaf_lists=True)
+    if "seed" in fixed:  # (each run's seed comes from `seeds`: a [set] seed would be overridden)
+        example = toml_inline(fixed["seed"]) if isinstance(fixed["seed"], int) else "1"
+        raise UserError("seeds are not a [set] value (each run's seed comes from seeds)", field="set.seed",
+                        fix=f"use seeds = [{example}] at the top level")
     for key, values in grid.items():
         if key == "seed":
             raise UserError("seeds are not a grid parameter", field="grid.seed", fix="use seeds = [...] at the top level")
@@ -436,7 +442,12 @@ class _FolderLock:
     """An exclusive lock on a sweep's output folder (``.sweep.lock``, ``fcntl.flock``) held
     while a study runs: a second ``v2v sweep`` on the same folder (e.g. started while the
     first is still finishing after Ctrl-C) would clear the first one's staging folders and
-    race it for the same runs. The operating system releases it when the process ends."""
+    race it for the same runs. The operating system releases it when the process ends.
+
+    The lock file is removed (while still locked) when the lock is released, on success and
+    on every error: so a sweep that stopped leaves no ``.sweep.lock`` behind. A process that
+    opened the file before its holder removed it then holds a lock on a removed file, so a
+    lock counts only once the locked file is still the one at ``.sweep.lock``."""
 
     def __init__(self, out: Path) -> None:
         self.path = out / ".sweep.lock"
@@ -447,16 +458,25 @@ class _FolderLock:
             import fcntl
         except ImportError:  # not POSIX: no lock
             return self
-        self._f = open(self.path, "a+")  # noqa: SIM115 - held until __exit__
-        try:
-            fcntl.flock(self._f, fcntl.LOCK_EX | fcntl.LOCK_NB)
-        except OSError:
-            self._f.seek(0)
-            owner = self._f.read().strip() or "another process"
+        while True:
+            self._f = open(self.path, "a+")  # noqa: SIM115 - held until __exit__
+            try:
+                fcntl.flock(self._f, fcntl.LOCK_EX | fcntl.LOCK_NB)
+            except OSError:
+                self._f.seek(0)
+                owner = self._f.read().strip() or "another process"
+                self._f.close()
+                self._f = None
+                raise UserError(f"another sweep is writing to {self.path.parent} ({owner})", field="--out",
+                                fix="wait for it to finish (or stop it), or give another --out") from None
+            try:
+                st = os.stat(self.path)
+                mine = os.fstat(self._f.fileno())
+                if (st.st_dev, st.st_ino) == (mine.st_dev, mine.st_ino):
+                    break
+            except OSError:  # removed by the holder that just released it: lock the next file
+                pass
             self._f.close()
-            self._f = None
-            raise UserError(f"another sweep is writing to {self.path.parent} ({owner})", field="--out",
-                            fix="wait for it to finish (or stop it), or give another --out") from None
         self._f.seek(0)
         self._f.truncate()
         self._f.write(f"pid {os.getpid()}\n")
@@ -465,6 +485,10 @@ class _FolderLock:
 
     def __exit__(self, *exc: object) -> None:
         if self._f is not None:
+            try:
+                self.path.unlink()  # while still holding it (see the class's docstring)
+            except OSError:
+                pass
             self._f.close()  # releases the lock
             self._f = None
 
@@ -538,6 +562,34 @@ def _check_scheduler_reachable(address: str, timeout_s: float = 5.0) -> None:
                         fix="give the scheduler's own address, as printed by `dask scheduler` (default port 8786)")
 
 
+HOST_FIX = "give an address of this machine for the local cluster, e.g. --host 127.0.0.1 (the default)"
+
+
+def _check_host(host: str) -> None:
+    """Fail fast, in one line, on a ``--host`` the local cluster could not listen on (a name
+    that does not resolve, an address of another machine): resolve it and bind a TCP socket
+    to it on a free port, as the cluster's scheduler will."""
+    import socket
+
+    name = host.split("://", 1)[-1].strip()
+    if name.startswith("[") and name.endswith("]"):
+        name = name[1:-1]
+    try:
+        infos = socket.getaddrinfo(name or None, 0, type=socket.SOCK_STREAM, flags=socket.AI_PASSIVE)
+    except (OSError, UnicodeError) as exc:
+        raise UserError(f"{host!r} does not resolve to an address ({one_line_error(exc)})", field="--host",
+                        fix=HOST_FIX) from None
+    why = "no address"
+    for family, kind, proto, _, addr in infos:
+        try:
+            with socket.socket(family, kind, proto) as s:
+                s.bind(addr)
+            return
+        except OSError as exc:
+            why = one_line_error(exc)
+    raise UserError(f"cannot listen on {host!r} ({why})", field="--host", fix=HOST_FIX)
+
+
 # Settings of the local cluster (the nannies pass them on to their workers). There is no
 # dashboard, so no use for the workers' statistical profiler, which otherwise takes every
 # thread's stack each 10 ms (a py-spy profile of a sweep worker: ~2.5 % of the time the worker
@@ -595,12 +647,20 @@ def _open_client(scheduler: str | None, workers: int | None, host: str, n_pendin
             config = {k: v for k, v in config.items() if k != "distributed.worker.multiprocessing-method"}
         with warnings.catch_warnings(), dask.config.set(config):
             warnings.filterwarnings("ignore", message="Port .* is already in use")  # the scheduler's HTTP endpoint
-            cluster = LocalCluster(n_workers=n, threads_per_worker=1, processes=True, host=host,
-                                   dashboard_address=None, silence_logs=logging.ERROR)
+            try:
+                cluster = LocalCluster(n_workers=n, threads_per_worker=1, processes=True, host=host,
+                                       dashboard_address=None, silence_logs=logging.ERROR)
+            except Exception as exc:  # noqa: BLE001 - (checked by _check_host; e.g. a port gone since)
+                raise UserError(f"the local cluster did not start on {host!r} ({one_line_error(exc)})",
+                                field="--host", fix=HOST_FIX) from None
     finally:
         if in_main:
             signal.signal(signal.SIGINT, old_sigint)
-    return Client(cluster, set_as_default=False), cluster
+    try:
+        return Client(cluster, set_as_default=False), cluster
+    except BaseException:
+        cluster.close()
+        raise
 
 
 def run_study(
@@ -632,11 +692,77 @@ def run_study(
     wall0 = time.perf_counter()
     out = Path(out_dir).resolve()
     runs_dir = out / "runs"
-    if scheduler and _scan(study, runs_dir)[1]:
-        _check_scheduler_reachable(scheduler)  # before anything is written
+    # before anything is written: the folder is this study's (or new), the cluster can be had
+    _check_out_folder(study, out)
+    if _scan(study, runs_dir)[1]:
+        if scheduler:
+            _check_scheduler_reachable(scheduler)
+        else:
+            _check_host(host)
+    created = not out.exists()
     _make_folder(out)
-    with _FolderLock(out):
-        return _run_study_locked(study, out, scheduler, workers, host, quiet, flush_every_s, wall0)
+    try:
+        with _FolderLock(out):
+            _check_out_folder(study, out)  # again, locked: another sweep may have written to it meanwhile
+            return _run_study_locked(study, out, scheduler, workers, host, quiet, flush_every_s, wall0)
+    except BaseException:
+        if created:  # a folder this call made and left empty (it failed before writing) goes too
+            try:
+                out.rmdir()
+            except OSError:
+                pass
+        raise
+
+
+def _check_out_folder(study: Study, out: Path) -> None:
+    """Refuse, in one line naming --out, a folder a sweep of ``study`` must not write to: a
+    single run's folder, or another study's sweep (whose runs.parquet and sweep.json this one
+    would replace, leaving that study's run folders listed nowhere).
+
+    A sweep folder is this study's if its sweep.json names this study file (the same file,
+    perhaps edited, resumes: what is done is decided by run id), or if every run its table
+    lists is a run of this study (a copy or a moved study file, or one extended by seeds or
+    grid values: nothing of the folder is dropped)."""
+    if not out.is_dir():
+        return  # new (or not a folder: _make_folder says so)
+    sweep_json, runs_file = out / SWEEP_FILE, out / RUNS_FILE
+    if not sweep_json.exists() and not runs_file.exists():
+        from v2v.io.atomic import RUN_FOLDER_MARKERS
+
+        marker = next((n for n in RUN_FOLDER_MARKERS if (out / n).exists()), None)
+        if marker is not None:
+            raise UserError(f"{out} is a run's folder (it holds {marker}), not a sweep's", field="--out",
+                            fix="give a new or empty folder for the sweep (or this study's previous sweep folder)")
+        return
+    recorded: str | None = None
+    try:
+        with sweep_json.open(encoding="utf-8") as f:
+            data = json.load(f)
+        recorded = str(data["study"]) if isinstance(data, dict) and data.get("study") else None
+    except (OSError, ValueError):
+        pass
+    if recorded == str(study.source):
+        return
+    dropped = _listed_run_ids(out) - {s.run_id for s in study.runs}
+    if not dropped:
+        return
+    other = f"study {recorded}" if recorded else "another study"
+    raise UserError(f"{out} holds the sweep of {other}, with {len(dropped)} run(s) that {study.source.name} does "
+                    f"not have (its runs.parquet and sweep.json would be replaced)", field="--out",
+                    fix=f"give a new folder for {study.source.name}, or rerun the same study into {out}")
+
+
+def _listed_run_ids(out: Path) -> set[str]:
+    """The run ids a sweep folder's runs.parquet lists (if it cannot be read: its run folders)."""
+    try:
+        import pyarrow.parquet as pq
+
+        return {str(x) for x in pq.read_table(out / RUNS_FILE, columns=["run_id"]).column("run_id").to_pylist()}
+    except Exception:  # noqa: BLE001 - missing, unreadable or not a runs table: look at the folders
+        runs_dir = out / "runs"
+        if not runs_dir.is_dir():
+            return set()
+        return {d.name for d in runs_dir.iterdir() if d.is_dir() and not d.name.startswith(".")}
 
 
 def _make_folder(out: Path) -> None:
