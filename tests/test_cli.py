@@ -341,6 +341,22 @@ def test_scenario_check_refuses_route_edges_the_net_lacks(capsys):
 
 
 @pytest.mark.sumo
+def test_a_lane_the_first_edge_lacks_is_refused_by_the_check_as_by_the_run(tmp_path, capsys):
+    """open_highway's route starts on a 3-lane edge: lane 2 passes the check, lane 3 is refused
+    by the check (counted in the net's XML) with the line the run gives (counted by SUMO)."""
+    hw = Path(__file__).resolve().parents[1] / "scenarios" / "open_highway.toml"
+    assert main(["scenario", "check", str(hw), "--set", "clusters.0.lanes=[0, 2]"]) == 0
+    lines = []
+    for cmd in (["scenario", "check", str(hw)], ["run", str(hw), "--quiet", "--no-replay", "--out", str(tmp_path / "r")]):
+        capsys.readouterr()
+        assert main([*cmd, "--set", "clusters.0.lanes=[0, 3]"]) == 2
+        err = [ln for ln in capsys.readouterr().err.splitlines() if ln.strip()]
+        assert len(err) == 1 and err[0].startswith("v2v: error: clusters.0.lanes: ") and "has 3 lane(s)" in err[0], err
+        lines.append(err[0])
+    assert lines[0] == lines[1] and not (tmp_path / "r").exists()
+
+
+@pytest.mark.sumo
 def test_a_net_without_a_drivable_route_is_refused_before_sumo(tmp_path, capsys):
     """A net file with no edge passenger cars may use has an empty automatic route: the check
     refuses it (network.route), as the run's set-up would, instead of saying OK."""

@@ -45,7 +45,7 @@ import subprocess
 import tempfile
 import tomllib
 import xml.etree.ElementTree as ET
-from collections.abc import Mapping
+from collections.abc import Mapping, Sequence
 from dataclasses import dataclass, field
 from pathlib import Path
 from typing import Any, NamedTuple
@@ -288,6 +288,30 @@ def edge_ids(net_path: str | os.PathLike) -> set[str]:
                 ids.add(elem.get("id", ""))
             elem.clear()
     return ids
+
+
+def lane_count(net_path: str | os.PathLike, edge: str) -> int:
+    """Number of lanes of a net's edge (0 if the net has no such edge), read from the XML."""
+    path = Path(net_path)
+    opener = gzip.open if path.suffix == ".gz" else open
+    with opener(path, "rb") as f:
+        for _, elem in ET.iterparse(f, events=("end",)):
+            if elem.tag == "edge":
+                if elem.get("id") == edge:
+                    return sum(1 for child in elem if child.tag == "lane")
+                elem.clear()
+    return 0
+
+
+def check_cluster_lanes(clusters: Sequence[Any], n_lanes: int) -> None:
+    """Every cluster's ``lanes`` exist on the route's first edge (``n_lanes`` lanes, indices
+    0 = rightmost), where its vehicles are inserted; else the :class:`UserError` naming the
+    scenario field (``clusters.<index>.lanes``)."""
+    for i, c in enumerate(clusters):
+        bad = [lane for lane in c.lanes if lane >= n_lanes]
+        if bad:
+            raise UserError(f"cluster {c.name!r} asks for lane(s) {bad} but the route's first edge has {n_lanes} lane(s)",
+                            field=f"clusters.{i}.lanes", fix=f"use lane indices 0..{n_lanes - 1} (0 = rightmost)")
 
 
 # --------------------------------------------------------------------------- shipped nets

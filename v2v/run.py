@@ -259,18 +259,21 @@ def check_scenario(scenario: Scenario, base_dir: Path | None = None) -> None:
     """Check, without running, what a run of ``scenario`` checks in its set-up beyond the
     scenario schema (which :func:`v2v.config.scenario.load_scenario` applies, the sensors' own
     rules among it: UWB radio types and pairs, the bearing sensor's values): the network, built
-    from its sources if it is not yet (its route, its polygon files and their buildings), the
+    from its sources if it is not yet (its route, the clusters' lanes on its first edge, its
+    polygon files and their buildings), the
     sky (a RINEX file: present, readable, spanning the run) and the faults' PRNs (in that sky).
     Raises the :class:`UserError` the run would; ``base_dir`` as for :func:`run_scenario`.
     ``v2v scenario check`` and ``v2v sweep`` call it, so a study's bad value stops the study
     before any run instead of failing each one. Neither the filter nor a compiled sensor
     module is imported (a sweep's own process stays small)."""
+    from v2v import nets
     from v2v.sensors.gnss.source import ephemeris_source
     from v2v.sensors.gnss.time import utc_to_gps_s
     from v2v.world.buildings import load_polygons
 
     scenario = absolute_paths(scenario, base_dir)
     net = resolve_network(scenario)
+    nets.check_cluster_lanes(scenario.clusters, nets.lane_count(net.net_path, net.route_edges[0]))
     if net.poly_paths:
         load_polygons(list(net.poly_paths))
     eph = ephemeris_source(scenario.sensors.gnss.ephemeris, float(utc_to_gps_s(scenario.start_utc)), scenario.duration_s)

@@ -39,6 +39,7 @@ from numba import njit
 
 from v2v.errors import UserError
 from v2v.frames import WGS84_A_M, WGS84_E2, GeoReference, wrap_angle_scalar
+from v2v.nets import check_cluster_lanes
 from v2v.traffic.snapshot import EventKind, TrafficEvent, TrafficStep, VehicleState
 
 if TYPE_CHECKING:
@@ -231,14 +232,8 @@ class SumoSimulation:
             tc.vehicletype.setMinGap(vid, 2.0)
             if vt.length_m > 7.0:
                 tc.vehicletype.setVehicleClass(vid, "truck")
+        check_cluster_lanes(sc.clusters, n_lanes_first)
         for c in sc.clusters:
-            bad = [lane for lane in c.lanes if lane >= n_lanes_first]
-            if bad:
-                raise UserError(
-                    f"cluster {c.name!r} asks for lane(s) {bad} but the route's first edge has {n_lanes_first} lane(s)",
-                    field=f"clusters.{c.name}.lanes",
-                    fix=f"use lane indices 0..{n_lanes_first - 1}",
-                )
             ids = [f"{c.name}.{i}" for i in range(c.vehicles)]
             lead_id = ids[c.lead]
             gap = c.time_gap_s / len(c.lanes)
