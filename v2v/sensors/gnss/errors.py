@@ -195,8 +195,9 @@ class GnssErrorConfig:
     tens of metres apart (clock of the satellite, orbit, ionosphere, troposphere) cancels
     in single differences to < 1 mm here; what is left is receiver clock (estimated),
     multipath and noise. With the defaults, at 30-60 deg elevation, one receiver's code
-    error is ``sqrt(0.15..0.18^2 + 0.21^2) ~ 0.27 m`` (multipath, :func:`multipath_sigma_m`,
-    + DLL noise at ~46 dB-Hz), a single difference ~0.38 m. Multipath decorrelates in 5 s
+    error is ``sqrt(0.15..0.18^2 + 0.23^2) ~ 0.28-0.29 m`` (multipath, :func:`multipath_sigma_m`,
+    + DLL noise at 46 dB-Hz, :func:`dll_jitter_m`: 0.232 m), a single difference ~0.39-0.42 m.
+    Multipath decorrelates in 5 s
     and noise in 0.5 s, so a Doppler-aided filter with a memory of tens of seconds averages
     them down to the paper's 0.1-0.2 m (tables 3-4); what the defaults give is in
     :class:`MultipathConfig` ("What it gives"). (An earlier measurement of snapshot SD
