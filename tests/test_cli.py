@@ -61,12 +61,15 @@ def test_bad_scenario_is_one_line_exit_2_and_no_run_folder(tmp_path, case):
     assert not [q for q in tmp_path.iterdir() if q.name.startswith(".run")], "no staging folder left behind"
 
 
-def test_out_that_is_not_a_run_folder_is_refused_and_left_alone(tmp_path, capsys):
+def test_out_that_is_not_a_run_folder_is_refused_and_left_alone(tmp_path, capsys, monkeypatch):
     """--out may be new, empty or a previous run's folder (replaced); anything else is the
     user's: refused before any work, untouched."""
     docs = tmp_path / "docs"
     docs.mkdir()
     (docs / "thesis.txt").write_text("mine")
+    here = tmp_path / "here"  # the current folder (empty) and its parents are refused too: a run replaces its folder
+    here.mkdir()
+    monkeypatch.chdir(here)
     afile = tmp_path / "afile"
     afile.write_text("mine")
     # a previous run's folder with the user's notes added, and one a sweep was written into
@@ -78,14 +81,14 @@ def test_out_that_is_not_a_run_folder_is_refused_and_left_alone(tmp_path, capsys
     (noted / "notes.txt").write_text("mine")
     (swept / "runs").mkdir()
     (swept / "runs.parquet").write_text("mine")
-    for out in (docs, afile, afile / "run", noted, swept):
+    for out in (docs, afile, afile / "run", noted, swept, Path("."), Path(""), Path("..")):
         assert main(["demo", "--quiet", "--no-replay", "--set", "duration_s=1", "--out", str(out)]) == 2
         err = [ln for ln in capsys.readouterr().err.splitlines() if ln.strip()]
         assert len(err) == 1 and err[0].startswith("v2v: error: --out: ") and "fix:" in err[0]
     assert (docs / "thesis.txt").read_text() == "mine" and afile.read_text() == "mine"
     assert (noted / "notes.txt").read_text() == "mine" and (swept / "runs.parquet").read_text() == "mine"
     # no staging or .old folder
-    assert sorted(q.name for q in tmp_path.iterdir()) == ["afile", "docs", "noted", "swept"]
+    assert sorted(q.name for q in tmp_path.iterdir()) == ["afile", "docs", "here", "noted", "swept"] and not any(here.iterdir())
 
 
 @pytest.mark.sumo
