@@ -296,7 +296,11 @@ def test_files_that_are_not_sumo_nets_or_osm(tmp_path):
     osm.write_text("this is not OSM")
     with pytest.raises(UserError) as e:
         nets.import_osm(osm, "zz", tmp_path / "out")
-    assert e.value.field == "network.osm_file" and not (tmp_path / "out" / "zz").exists()
+    assert e.value.field == "network.osm_file" and not (tmp_path / "out").exists()  # (--out made by the import: gone)
+    (tmp_path / "mine").mkdir()
+    with pytest.raises(UserError):
+        nets.import_osm(osm, "zz", tmp_path / "mine")
+    assert (tmp_path / "mine").is_dir() and not any((tmp_path / "mine").iterdir())  # a folder that was there stays
 
 
 def test_netconvert_failure_is_one_user_error_line(tmp_path, monkeypatch):

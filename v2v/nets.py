@@ -537,7 +537,9 @@ def import_osm(osm_path: str | os.PathLike, name: str, out_root: str | os.PathLi
     if not re.fullmatch(r"[A-Za-z0-9_.-]+", name):
         raise UserError(f"bad network name {name!r}", field="network.name", fix="use letters, digits, _ . -")
     out_dir = (NETS_DIR if out_root is None else Path(out_root)) / name
-    created = not out_dir.exists()
+    # the outermost folder this import creates (out_dir or a parent, e.g. a new --out): a failed
+    # import removes it, so it leaves no empty folder behind
+    created = next((d for d in reversed((out_dir, *out_dir.parents)) if not d.exists()), None)
     out_dir.mkdir(parents=True, exist_ok=True)
     net_path = out_dir / f"{name}.net.xml"
     poly_path = out_dir / f"{name}.poly.xml"
@@ -566,8 +568,8 @@ def import_osm(osm_path: str | os.PathLike, name: str, out_root: str | os.PathLi
         os.replace(tmp_net, net_path)
         os.replace(tmp_poly, poly_path)
     except BaseException:
-        if created:  # a failed import leaves no empty net folder behind
-            shutil.rmtree(out_dir, ignore_errors=True)
+        if created is not None:
+            shutil.rmtree(created, ignore_errors=True)
         raise
     finally:
         tmp_net.unlink(missing_ok=True)
