@@ -98,7 +98,7 @@ def test_a_killed_run_leaves_no_staging_folder(tmp_path, sig, code, says):
     the signal's number, and neither the run folder nor its hidden staging folder left."""
     out = tmp_path / "r"
     env = {**os.environ, "PYTHONUNBUFFERED": "1"}
-    p = subprocess.Popen([sys.executable, "-m", "v2v", "demo", "--set", "duration_s=600", "--out", str(out)],
+    p = subprocess.Popen([sys.executable, "-m", "v2v", "demo", "--set", "duration_s=3600", "--out", str(out)],
                          cwd=tmp_path, stdout=subprocess.DEVNULL, stderr=subprocess.PIPE, text=True, env=env,
                          preexec_fn=lambda: signal.signal(signal.SIGINT, signal.SIG_DFL))
     try:

@@ -35,7 +35,7 @@ from dataclasses import dataclass, field, replace
 from typing import Literal
 
 import numpy as np
-from pydantic import BaseModel, ConfigDict, Field, model_validator
+from pydantic import BaseModel, ConfigDict, Field, StrictFloat, StrictInt, model_validator
 
 from v2v.sensors.measurements import GPS_L1_WAVELENGTH_M, SPEED_OF_LIGHT_MPS, Bearings, GnssEpoch, UwbRanges
 
@@ -50,14 +50,14 @@ class FaultSection(BaseModel):
 
     model_config = ConfigDict(extra="forbid", frozen=True)
     kind: FaultKind
-    start_s: float = Field(ge=0.0)
-    duration_s: float = Field(default=0.0, ge=0.0)
+    start_s: StrictFloat = Field(ge=0.0)
+    duration_s: StrictFloat = Field(default=0.0, ge=0.0)
     vehicles: Literal["all"] | list[str] = "all"
-    prns: list[int] = Field(default_factory=list)
-    size_m: float = 0.0
-    size_cycles: int = 0
-    scale_ppm: float = 0.0
-    probability: float = Field(default=1.0, ge=0.0, le=1.0)
+    prns: list[StrictInt] = Field(default_factory=list)
+    size_m: StrictFloat = 0.0
+    size_cycles: StrictInt = 0
+    scale_ppm: StrictFloat = 0.0
+    probability: StrictFloat = Field(default=1.0, ge=0.0, le=1.0)
     sensor: Literal["gnss", "uwb", "bearing"] = "gnss"
 
     @model_validator(mode="after")

@@ -14,13 +14,23 @@ from __future__ import annotations
 
 import difflib
 import itertools
+import re
 import tomllib
 from datetime import UTC, datetime
 from pathlib import Path
 from typing import Any
 
 import tomli_w
-from pydantic import BaseModel, ConfigDict, Field, ValidationError, field_validator, model_validator
+from pydantic import (
+    BaseModel,
+    ConfigDict,
+    Field,
+    StrictFloat,
+    StrictInt,
+    ValidationError,
+    field_validator,
+    model_validator,
+)
 
 from v2v.config.sections import ExchangeSection, SensorsSection, SolutionSection, paper_solutions
 from v2v.errors import UserError
@@ -30,6 +40,9 @@ DEFAULT_SCENARIO_PATH = Path(__file__).with_name("default.toml")
 
 
 class _Model(BaseModel):
+    # Field types are strict (StrictInt, StrictFloat; v2v.config.sections' too): a wrong TOML
+    # type is an error, not coerced (true is no 1.0, "3" no 3); a float field takes an integer
+    # (duration_s = 60), a tuple field a TOML array.
     model_config = ConfigDict(extra="forbid", frozen=True)
 
 
@@ -39,9 +52,11 @@ class NetworkConfig(_Model):
     polygon_files: list[str] = Field(default_factory=list)
     route: str = "default"
     route_edges: list[str] = Field(default_factory=list)
-    origin_h_m: float = 0.0
-    georef_lat_deg: float = Field(default=51.0775, ge=-90.0, le=90.0)
-    georef_lon_deg: float = Field(default=-114.1295, ge=-180.0, le=180.0)
+    # ellipsoidal height of the net's z = 0, a road's: -500..9000 m holds every road on Earth, from
+    # the Dead Sea's shore (~-430 m) to the highest passes (~5800 m), geoid (+-110 m) included
+    origin_h_m: StrictFloat = Field(default=0.0, ge=-500.0, le=9000.0)
+    georef_lat_deg: StrictFloat = Field(default=51.0775, ge=-90.0, le=90.0)
+    georef_lon_deg: StrictFloat = Field(default=-114.1295, ge=-180.0, le=180.0)
 
     @model_validator(mode="after")
     def _one_source(self) -> NetworkConfig:
@@ -51,14 +66,14 @@ class NetworkConfig(_Model):
 
 
 class VehicleTypeConfig(_Model):
-    length_m: float = Field(gt=0.5, le=30.0)
-    width_m: float = Field(gt=0.5, le=4.0)
-    height_m: float = Field(gt=0.5, le=6.0)
-    max_speed_mps: float = Field(gt=0.0, le=70.0)
-    accel_mps2: float = Field(gt=0.0, le=10.0)
-    decel_mps2: float = Field(gt=0.0, le=12.0)
-    driver_imperfection: float = Field(default=0.5, ge=0.0, le=1.0)
-    antenna_lever_arm_m: tuple[float, float, float] = (-2.0, 0.0, 1.55)
+    length_m: StrictFloat = Field(gt=0.5, le=30.0)
+    width_m: StrictFloat = Field(gt=0.5, le=4.0)
+    height_m: StrictFloat = Field(gt=0.5, le=6.0)
+    max_speed_mps: StrictFloat = Field(gt=0.0, le=70.0)
+    accel_mps2: StrictFloat = Field(gt=0.0, le=10.0)
+    decel_mps2: StrictFloat = Field(gt=0.0, le=12.0)
+    driver_imperfection: StrictFloat = Field(default=0.5, ge=0.0, le=1.0)
+    antenna_lever_arm_m: tuple[StrictFloat, StrictFloat, StrictFloat] = (-2.0, 0.0, 1.55)
 
     @model_validator(mode="after")
     def _antenna_on_the_vehicle(self) -> VehicleTypeConfig:
@@ -75,13 +90,16 @@ class VehicleTypeConfig(_Model):
 
 class ClusterConfig(_Model):
     name: str
-    vehicles: int = Field(ge=2, le=200)
+    vehicles: StrictInt = Field(ge=2, le=200)
     vehicle_type: str | list[str] = "passenger"
-    lanes: list[int] = Field(default_factory=lambda: [0], min_length=1)
-    time_gap_s: float = Field(default=2.0, gt=0.0, le=60.0)
-    lead: int = Field(default=0, ge=0)
-    depart_s: float = Field(default=0.0, ge=0.0)
-    max_separation_m: float = Field(default=300.0, gt=0.0)
+    lanes: list[StrictInt] = Field(default_factory=lambda: [0], min_length=1)
+    time_gap_s: StrictFloat = Field(default=2.0, gt=0.0, le=60.0)
+    lead: StrictInt = Field(default=0, ge=0)
+    # SUMO time of the cluster's first departure. The warm-up steps SUMO (background traffic
+    # and all) until every cluster vehicle has departed, and t_s = 0 is then: a later departure
+    # only lengthens the warm-up. At most an hour (3600 s).
+    depart_s: StrictFloat = Field(default=0.0, ge=0.0, le=3600.0)
+    max_separation_m: StrictFloat = Field(default=300.0, gt=0.0)
 
     @field_validator("lanes")
     @classmethod
@@ -93,9 +111,11 @@ class ClusterConfig(_Model):
     @model_validator(mode="after")
     def _lead_in_range(self) -> ClusterConfig:
         if self.lead >= self.vehicles:
-            raise ValueError(f"lead={self.lead} but the cluster has only {self.vehicles} vehicles (0-based index)")
+            raise ValueError(f"@lead: lead={self.lead} but the cluster has only {self.vehicles} vehicles (0-based index)"
+                             f" -- fix: give 0 .. {self.vehicles - 1}")
         if isinstance(self.vehicle_type, list) and len(self.vehicle_type) != self.vehicles:
-            raise ValueError("vehicle_type as a list needs one entry per vehicle")
+            raise ValueError(f"@vehicle_type: a list of {len(self.vehicle_type)} type(s) for {self.vehicles} vehicles"
+                             f" -- fix: give one entry per vehicle ({self.vehicles}), or one type for all")
         return self
 
     def type_of(self, i: int) -> str:
@@ -103,15 +123,15 @@ class ClusterConfig(_Model):
 
 
 class BackgroundConfig(_Model):
-    vehicles_per_hour: float = Field(default=0.0, ge=0.0, le=20000.0)
-    truck_fraction: float = Field(default=0.2, ge=0.0, le=1.0)
+    vehicles_per_hour: StrictFloat = Field(default=0.0, ge=0.0, le=20000.0)
+    truck_fraction: StrictFloat = Field(default=0.2, ge=0.0, le=1.0)
 
 
 class Scenario(_Model):
     name: str
-    seed: int = Field(ge=0, le=2**31 - 1)
-    duration_s: float = Field(gt=0.0, le=86400.0)
-    step_length_s: float = Field(gt=0.0, le=1.0)
+    seed: StrictInt = Field(ge=0, le=2**31 - 1)
+    duration_s: StrictFloat = Field(gt=0.0, le=86400.0)
+    step_length_s: StrictFloat = Field(gt=0.0, le=1.0)
     start_utc: datetime
     network: NetworkConfig
     clusters: list[ClusterConfig] = Field(min_length=1)
@@ -161,33 +181,36 @@ class Scenario(_Model):
         if len(set(names)) != len(names):
             dup = sorted({n for n in names if names.count(n) > 1})
             raise ValueError(f"@clusters: cluster name(s) {dup} appear more than once -- fix: give each cluster its own name")
-        for c in self.clusters:
+        for ci, c in enumerate(self.clusters):
             for i in range(c.vehicles):
                 t = c.type_of(i)
                 if t not in self.vehicle_types:
-                    raise ValueError(
-                        f"cluster {c.name!r} uses vehicle_type {t!r}, which is not defined; "
-                        f"defined: {sorted(self.vehicle_types)}"
-                    )
+                    at = f"clusters.{ci}.vehicle_type" + (f".{i}" if isinstance(c.vehicle_type, list) else "")
+                    raise ValueError(f"@{at}: vehicle type {t!r} is not defined in [vehicle_types] -- fix: use one of "
+                                     f"{', '.join(map(repr, sorted(self.vehicle_types)))} or define [vehicle_types.{t}]")
         sol_names = [s.name for s in self.solutions]
         if len(set(sol_names)) != len(sol_names):
             dup = sorted({n for n in sol_names if sol_names.count(n) > 1})
             raise ValueError(f"@solutions: solution name(s) {dup} appear more than once -- fix: give each solution its own name")
-        for s in self.solutions:
+        for si, s in enumerate(self.solutions):
             for sensor in s.sensors:
                 if not getattr(self.sensors, sensor).enabled:
                     raise ValueError(
-                        f"solution {s.name!r} uses {sensor!r} but sensors.{sensor}.enabled = false; "
-                        f"enable the sensor or drop it from the solution"
+                        f"@solutions.{si}.sensors: solution {s.name!r} uses {sensor!r} but sensors.{sensor}.enabled = false"
+                        f" -- fix: enable the sensor (sensors.{sensor}.enabled = true) or drop it from the solution"
                     )
         ids = set(self.vehicle_ids())
-        named = list(self.sensors.uwb.vehicle_profiles)
-        named += [v for pair in (self.sensors.uwb.pairs if self.sensors.uwb.pairs != "all" else []) for v in pair]
-        named += list(self.sensors.bearing.measuring) if self.sensors.bearing.measuring != "all" else []
-        named += [v for f in self.faults if f.vehicles != "all" for v in f.vehicles]
-        unknown = sorted(set(named) - ids)
-        if unknown:
-            raise ValueError(f"sensors name unknown vehicle(s) {unknown}; vehicles are {sorted(ids)}")
+        uwb, bearing = self.sensors.uwb, self.sensors.bearing
+        named = [("sensors.uwb.vehicle_profiles", list(uwb.vehicle_profiles)),
+                 ("sensors.uwb.pairs", [v for pair in (uwb.pairs if uwb.pairs != "all" else []) for v in pair]),
+                 ("sensors.bearing.measuring", list(bearing.measuring) if bearing.measuring != "all" else []),
+                 *((f"faults.{i}.vehicles", list(f.vehicles)) for i, f in enumerate(self.faults) if f.vehicles != "all")]
+        for at, listed in named:
+            unknown = [v for v in dict.fromkeys(listed) if v not in ids]
+            if unknown:
+                have = ", ".join(f"{c.name}.0 .. {c.name}.{c.vehicles - 1}" for c in self.clusters)
+                raise ValueError(f"@{at}: unknown vehicle id(s) {unknown} -- fix: use the clusters' vehicle ids"
+                                 f" (<cluster>.<index>): {have}")
         self._check_uwb_pairs()
         return self
 
@@ -252,9 +275,13 @@ def apply_override(data: dict[str, Any], assignment: str) -> dict[str, Any]:
     if "=" not in assignment:
         raise UserError(f"override {assignment!r} is not key=value", field="--set", fix="write e.g. --set seed=3")
     path, text = assignment.split("=", 1)
-    keys = [k for k in path.strip().split(".") if k]
-    if not keys:
+    keys = path.strip().split(".")
+    if keys == [""]:
         raise UserError(f"override {assignment!r} has an empty key", field="--set", fix="write e.g. --set seed=3")
+    if not all(k.strip() for k in keys):  # "network..name": not silently network.name
+        parts = ".".join(k.strip() for k in keys if k.strip())
+        raise UserError(f"override {assignment!r} has an empty part in its key {path.strip()!r}", field="--set",
+                        fix=f"one '.' between the parts: --set {parts}={text.strip()}" if parts else "write e.g. --set seed=3")
     value = _parse_value(text.strip())
     import copy
 
@@ -292,7 +319,7 @@ _STUDY_ONLY_KEYS = frozenset({"base", "seeds", "grid", "set"})  # top-level keys
 
 
 def _format_validation_error(err: ValidationError, data: dict[str, Any], source: str) -> UserError:
-    e = err.errors()[0]
+    e = _union_member_error(err.errors())
     loc = ".".join(str(p) for p in e["loc"])
     if e["type"] == "extra_forbidden":
         name = str(e["loc"][-1])
@@ -318,11 +345,43 @@ def _format_validation_error(err: ValidationError, data: dict[str, Any], source:
     return UserError(f"{msg}{got_s} in {source}", field=loc or "scenario", fix=fix)
 
 
+# pydantic's tag of a union's member in an error's loc: ("faults", 0, "vehicles", "literal['all']")
+_UNION_TAG = re.compile(r"str|int|float|bool|(literal|list|tuple|dict)\[.*\]")
+_UNION_WORDS = {"str": "a quoted string", "list[str]": "a list of quoted strings"}
+
+
+def _union_member_error(errors: list[Any]) -> Any:
+    """The first error, where it is a union field's (``Literal["all"] | list[str]``) as the user
+    means it: pydantic reports every member's error, each loc tagged with the member. Keep the
+    list member's if the value is a list, else the first member's; drop the tag from the loc;
+    a value that is none of the members says what the members are."""
+    e = errors[0]
+    j = next((k for k, p in enumerate(e["loc"]) if isinstance(p, str) and _UNION_TAG.fullmatch(p)), None)
+    if j is None:
+        return e
+    at = e["loc"][:j]
+    members = [x for x in errors if x["loc"][:j] == at and len(x["loc"]) > j and isinstance(x["loc"][j], str)
+               and _UNION_TAG.fullmatch(x["loc"][j])]
+    tags = list(dict.fromkeys(x["loc"][j] for x in members))
+    if len(tags) < 2:
+        return e
+    whole = next((x for x in members if len(x["loc"]) == j + 1), e)["input"]
+    chosen = next((x for x in members if isinstance(whole, list) and x["loc"][j].startswith("list[")), e)
+    out = {**chosen, "loc": (*at, *chosen["loc"][j + 1:])}
+    if len(chosen["loc"]) == j + 1:  # the value is none of the members
+        alts = " or ".join(t[len("literal["):-1] if t.startswith("literal[") else _UNION_WORDS.get(t, f"a {t}")
+                           for t in tags)
+        out.update(type="union_member", msg=f"Input should be {alts}", ctx={"fix": f"give {alts}"})
+    return out
+
+
 _BOUND_WORDS = {"greater_than": ("gt", "> {}"), "greater_than_equal": ("ge", ">= {}"),
                 "less_than": ("lt", "< {}"), "less_than_equal": ("le", "<= {}")}
 _TYPE_FIXES = {"int_parsing": "give a whole number", "int_from_float": "give a whole number",
-               "float_parsing": "give a number (no quotes)", "float_type": "give a number",
-               "bool_parsing": "give true or false", "bool_type": "give true or false",
+               "int_type": "give a whole number{hint}",
+               "float_parsing": "give a number (no quotes)", "float_type": "give a number{hint}",
+               "bool_parsing": "give true or false", "bool_type": "give true or false{hint}",
+               "union_member": "{fix}",
                "string_type": 'give a quoted string, e.g. "name"', "list_type": "give a list, e.g. [0, 1]",
                "too_short": "give at least {min_length} item(s)", "too_long": "give at most {max_length} item(s)",
                "literal_error": "use one of {expected}", "datetime_parsing": 'give an ISO 8601 time, e.g. "2021-04-28T19:00:00Z"',
@@ -338,8 +397,11 @@ def _constraint_fix(e: Any) -> str:
         if key in ctx:
             return "use a value " + fmt.format(ctx[key])
     if kind in _TYPE_FIXES:
+        got = e.get("input")
+        hint = (" (no quotes)" if isinstance(got, str) else " (not true or false)" if isinstance(got, bool)
+                else f", not {got!r}" if isinstance(got, int | float) else "")
         try:
-            return _TYPE_FIXES[kind].format(**ctx)
+            return _TYPE_FIXES[kind].format(hint=hint, **ctx)
         except (KeyError, IndexError):
             return _TYPE_FIXES[kind].split(" {")[0]
     return "correct the value"

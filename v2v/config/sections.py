@@ -8,31 +8,43 @@ from __future__ import annotations
 
 from typing import Any, Literal
 
-from pydantic import BaseModel, ConfigDict, Field, field_validator, model_validator
+from pydantic import (
+    BaseModel,
+    ConfigDict,
+    Field,
+    StrictBool,
+    StrictFloat,
+    StrictInt,
+    field_validator,
+    model_validator,
+)
 
 
 class _Model(BaseModel):
+    # Field types are strict (StrictBool, StrictInt, StrictFloat), as v2v.config.scenario's: a
+    # wrong TOML type is an error, not coerced (true is no 1.0, "3" no 3, 0 no false); a float
+    # field takes an integer (rate_hz = 10), a tuple field a TOML array.
     model_config = ConfigDict(extra="forbid", frozen=True)
 
 
 class GnssErrorsSection(_Model):
     """Each GNSS error model, switchable on its own (all on by default)."""
 
-    receiver_clock: bool = True
-    ionosphere: bool = True
-    troposphere: bool = True
-    satellite_orbit: bool = True
-    satellite_clock: bool = True
-    multipath: bool = True
-    noise: bool = True
-    foliage: bool = True
-    nlos: bool = True
+    receiver_clock: StrictBool = True
+    ionosphere: StrictBool = True
+    troposphere: StrictBool = True
+    satellite_orbit: StrictBool = True
+    satellite_clock: StrictBool = True
+    multipath: StrictBool = True
+    noise: StrictBool = True
+    foliage: StrictBool = True
+    nlos: StrictBool = True
 
 
 class GnssSection(_Model):
-    enabled: bool = True
-    rate_hz: float = Field(default=10.0, gt=0.0, le=100.0)
-    elevation_mask_deg: float = Field(default=10.0, ge=0.0, lt=90.0)
+    enabled: StrictBool = True
+    rate_hz: StrictFloat = Field(default=10.0, gt=0.0, le=100.0)
+    elevation_mask_deg: StrictFloat = Field(default=10.0, ge=0.0, lt=90.0)
     # "nominal" = the built-in SPS PS 27-slot (expandable 24) constellation at start_utc
     # (v2v.sensors.gnss.constellation), or a RINEX 2/3 nav file path for a real sky.
     ephemeris: str = "nominal"
@@ -51,7 +63,7 @@ def _unknown_profile(name: str) -> str | None:
 
 
 class UwbSection(_Model):
-    enabled: bool = True
+    enabled: StrictBool = True
     profile: str = "mssi"  # mssi | tdc | ideal
     vehicle_profiles: dict[str, str] = Field(default_factory=dict)  # per vehicle id
     pairs: Literal["all"] | list[tuple[str, str]] = "all"
@@ -62,6 +74,18 @@ class UwbSection(_Model):
         bad = _unknown_profile(v)
         if bad:
             raise ValueError(bad)
+        return v
+
+    @field_validator("pairs", mode="before")
+    @classmethod
+    def _pairs_of_two_ids(cls, v: Any) -> Any:
+        fix = 'give "all" or a list of [id, id] pairs, e.g. [["c1.0", "c1.1"]]'
+        if isinstance(v, list | tuple):
+            for i, pair in enumerate(v):
+                if not (isinstance(pair, list | tuple) and len(pair) == 2 and all(isinstance(x, str) for x in pair)):
+                    raise ValueError(f"@{i}: each pair is two vehicle ids, got {pair!r} -- fix: {fix}")
+        elif v != "all":
+            raise ValueError(f'is "all" or a list of vehicle-id pairs -- fix: {fix}')
         return v
 
     @field_validator("vehicle_profiles")
@@ -75,12 +99,12 @@ class UwbSection(_Model):
 
 
 class BearingSection(_Model):
-    enabled: bool = True
-    sigma_deg: float = Field(default=0.5, gt=0.0, le=30.0)
-    field_of_view_deg: float = Field(default=360.0, gt=0.0, le=360.0)
-    max_range_m: float = Field(default=150.0, gt=0.0)
-    rate_hz: float = Field(default=10.0, gt=0.0, le=100.0)
-    azimuth_sigma_deg: float = Field(default=0.1, ge=0.0, le=30.0)
+    enabled: StrictBool = True
+    sigma_deg: StrictFloat = Field(default=0.5, gt=0.0, le=30.0)
+    field_of_view_deg: StrictFloat = Field(default=360.0, gt=0.0, le=360.0)
+    max_range_m: StrictFloat = Field(default=150.0, gt=0.0)
+    rate_hz: StrictFloat = Field(default=10.0, gt=0.0, le=100.0)
+    azimuth_sigma_deg: StrictFloat = Field(default=0.1, ge=0.0, le=30.0)
     measuring: Literal["all"] | list[str] = "all"
 
 
@@ -96,9 +120,9 @@ SENSOR_NAMES = ("gnss", "uwb", "bearing")
 class ExchangeSection(_Model):
     """V2V message exchange to the lead's filter (see :mod:`v2v.exchange`)."""
 
-    latency_s: float = Field(default=0.0, ge=0.0, le=10.0)
-    loss_probability: float = Field(default=0.0, ge=0.0, le=1.0)
-    filter_lag_s: float | None = Field(default=None, ge=0.0, le=10.0)
+    latency_s: StrictFloat = Field(default=0.0, ge=0.0, le=10.0)
+    loss_probability: StrictFloat = Field(default=0.0, ge=0.0, le=1.0)
+    filter_lag_s: StrictFloat | None = Field(default=None, ge=0.0, le=10.0)
 
     @property
     def lag_s(self) -> float:
@@ -116,55 +140,55 @@ class SolutionSection(_Model):
     name: str
     sensors: list[str] = Field(min_length=1)
     azimuth: Literal["known", "estimated"] = "known"
-    uwb_error_states: bool = False
+    uwb_error_states: StrictBool = False
     # MacGougan (2009) eq. 3.19-3.22: after each UWB update a bias or scale state beyond its
     # known range is pulled onto the bound by a pseudo-measurement (uwb_error_states only).
     # Bias: +-1.23 m, the worst case of 20 ppm oscillators (IEEE 802.15.4a; thesis 3.4.3);
     # scale: 0-5000 ppm covers both built-in radios' line-of-sight walk (2300-4700 ppm, 2.11.1).
-    uwb_constraints: bool = False
-    uwb_bias_bounds_m: tuple[float, float] = (-1.23, 1.23)
-    uwb_scale_bounds: tuple[float, float] = (0.0, 0.005)
-    pseudorange_sigma_m: float = Field(default=5.0, gt=0.0)
-    doppler_sigma_mps: float = Field(default=0.1, gt=0.0)
-    uwb_sigma_m: float = Field(default=0.5, gt=0.0)
-    bearing_sigma_deg: float = Field(default=0.5, gt=0.0)
-    significance: float = Field(default=0.001, gt=0.0, lt=1.0)
-    velocity_sigma_horizontal_mps: float = Field(default=10.0, gt=0.0)
-    velocity_sigma_vertical_mps: float = Field(default=1.0, gt=0.0)
-    velocity_tau_s: float = Field(default=2.0, gt=0.0)
-    clock_drift_sigma_mps: float = Field(default=1000.0, gt=0.0)
-    clock_drift_tau_s: float = Field(default=10.0, gt=0.0)
+    uwb_constraints: StrictBool = False
+    uwb_bias_bounds_m: tuple[StrictFloat, StrictFloat] = (-1.23, 1.23)
+    uwb_scale_bounds: tuple[StrictFloat, StrictFloat] = (0.0, 0.005)
+    pseudorange_sigma_m: StrictFloat = Field(default=5.0, gt=0.0)
+    doppler_sigma_mps: StrictFloat = Field(default=0.1, gt=0.0)
+    uwb_sigma_m: StrictFloat = Field(default=0.5, gt=0.0)
+    bearing_sigma_deg: StrictFloat = Field(default=0.5, gt=0.0)
+    significance: StrictFloat = Field(default=0.001, gt=0.0, lt=1.0)
+    velocity_sigma_horizontal_mps: StrictFloat = Field(default=10.0, gt=0.0)
+    velocity_sigma_vertical_mps: StrictFloat = Field(default=1.0, gt=0.0)
+    velocity_tau_s: StrictFloat = Field(default=2.0, gt=0.0)
+    clock_drift_sigma_mps: StrictFloat = Field(default=1000.0, gt=0.0)
+    clock_drift_tau_s: StrictFloat = Field(default=10.0, gt=0.0)
     # "relative up = h_v - h_lead +- sigma" (antenna heights above the road, from the vehicle
     # types' antenna_lever_arm_m) in epochs without GNSS (cars on one locally flat road): UWB and
     # bearings carry no height, and without it their geometry degrades within seconds of an outage.
     # height_aiding = false turns it off (TOML has no null; height_aiding_sigma_m = None given from
     # Python means the same and is stored as height_aiding = false).
-    height_aiding: bool = True
-    height_aiding_sigma_m: float = Field(default=1.0, gt=0.0)
+    height_aiding: StrictBool = True
+    height_aiding_sigma_m: StrictFloat = Field(default=1.0, gt=0.0)
     # A vehicle with fewer satellites in common with the lead than this leaves its GNSS out of
     # the epoch (as in an outage: height aiding, UWB and bearings carry it). 0: use every SD
     # (the paper's filter). 4 in a deep canyon: see the README's carrier-phase section.
-    gnss_min_satellites: int = Field(default=0, ge=0)
+    gnss_min_satellites: StrictInt = Field(default=0, ge=0)
     # SNR mask of the SD pseudoranges and Dopplers: only signals with C/N0 >= this (dB-Hz) at
     # both receivers. Echoes arrive echo_loss_db (8 dB) weaker than their direct signal, so 41
     # (zenith 49 - 8) leaves none. 0: no mask (the paper's filter). See FilterConfig.
-    gnss_cn0_mask_dbhz: float = Field(default=0.0, ge=0.0, le=60.0)
+    gnss_cn0_mask_dbhz: StrictFloat = Field(default=0.0, ge=0.0, le=60.0)
     # Estimated-azimuth process model (azimuth = "estimated" only): azimuth = integral of a
     # first-order Gauss-Markov yaw rate (sigma, tau) plus a random walk. yaw_rate_sigma_deg_s = 0
     # drops the yaw-rate state (pure random walk). See v2v.estimation.process.
-    azimuth_rw_deg_per_sqrt_s: float = Field(default=2.0, ge=0.0)
-    yaw_rate_sigma_deg_s: float = Field(default=30.0, ge=0.0)
-    yaw_rate_tau_s: float = Field(default=1.0, gt=0.0)
+    azimuth_rw_deg_per_sqrt_s: StrictFloat = Field(default=2.0, ge=0.0)
+    yaw_rate_sigma_deg_s: StrictFloat = Field(default=30.0, ge=0.0)
+    yaw_rate_tau_s: StrictFloat = Field(default=1.0, gt=0.0)
     # Carrier phase (MacGougan (2009) sections 3.4-3.7; v2v.estimation.phase): SD phase with SD
     # ambiguity states, LAMBDA partial fixing validated by the bootstrapped success rate and the
     # ratio test, fix-and-hold. The phase solutions use a realistic code sigma (open-sky code
     # error ~0.5 m), not the paper's 5 m: with 5 m the float ambiguities need many minutes.
-    carrier_phase: bool = False
-    phase_sigma_m: float = Field(default=0.005, gt=0.0)
-    phase_elevation_mask_deg: float = Field(default=15.0, ge=0.0, lt=90.0)
-    ambiguity_resolution: bool = True
-    ar_min_success: float = Field(default=0.999, gt=0.0, lt=1.0)
-    ar_ratio: float = Field(default=3.0, ge=1.0)
+    carrier_phase: StrictBool = False
+    phase_sigma_m: StrictFloat = Field(default=0.005, gt=0.0)
+    phase_elevation_mask_deg: StrictFloat = Field(default=15.0, ge=0.0, lt=90.0)
+    ambiguity_resolution: StrictBool = True
+    ar_min_success: StrictFloat = Field(default=0.999, gt=0.0, lt=1.0)
+    ar_ratio: StrictFloat = Field(default=3.0, ge=1.0)
 
     @model_validator(mode="before")
     @classmethod

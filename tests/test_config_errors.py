@@ -1,0 +1,155 @@
+"""A scenario value of the wrong type, out of its physical range, naming a vehicle that does not
+exist, or a --set path with an empty part: one UserError naming the field as the user writes it
+with --set, and a fix that says what is allowed. Never a silent coercion or a silent fix-up."""
+
+from __future__ import annotations
+
+import subprocess
+import sys
+from pathlib import Path
+
+import pytest
+
+from v2v.config.scenario import load_scenario
+from v2v.errors import UserError
+
+SCENARIOS = Path(__file__).resolve().parents[1] / "scenarios"
+
+
+def _error(*overrides: str) -> UserError:
+    with pytest.raises(UserError) as e:
+        load_scenario(None, list(overrides))
+    return e.value
+
+
+@pytest.mark.parametrize(("override", "fix"), [
+    ("duration_s=true", "give a number"),
+    ("duration_s='60'", "give a number (no quotes)"),
+    ("clusters.0.vehicles='3'", "give a whole number"),
+    ("clusters.0.vehicles=3.0", "give a whole number"),
+    ("clusters.0.lanes=[true]", "give a whole number"),
+    ('seed="7"', "give a whole number"),
+    ("sensors.gnss.errors.noise=0", "give true or false"),
+    ("sensors.gnss.errors.ionosphere='off'", "give true or false"),
+    ("sensors.uwb.enabled='no'", "give true or false"),
+    ("sensors.uwb.enabled=no", "give true or false"),  # not TOML: a plain string
+    ("solutions.0.carrier_phase=1", "give true or false"),
+    ("exchange.filter_lag_s=true", "give a number"),
+    ("vehicle_types.passenger.antenna_lever_arm_m=[-2.0, 0.0, true]", "give a number"),
+    ('faults=[{kind="clock_jump", start_s=true}]', "give a number"),
+    ('faults=[{kind="cycle_slip", start_s=1.0, size_cycles="2"}]', "give a whole number"),
+])
+def test_a_value_of_the_wrong_type_is_refused_not_coerced(override, fix):
+    """true is no 1.0, "3" no 3, 0 no false, "off" no false: each is an error whose fix names the type."""
+    err = _error(override)
+    field = override.split("=")[0]
+    if field == "faults":
+        field = "faults.0." + ("start_s" if "start_s=true" in override else "size_cycles")
+    if field.endswith("antenna_lever_arm_m"):
+        field += ".2"
+    if field.endswith("lanes"):
+        field += ".0"
+    assert err.field == field and err.fix.startswith(fix), err.one_line()
+
+
+def test_what_toml_gives_legitimately_is_still_accepted():
+    """An integer for a float field, arrays for tuple fields, strings for enums, ISO times."""
+    sc = load_scenario(None, ["duration_s=60", "step_length_s=1", "sensors.gnss.rate_hz=1", "network.origin_h_m=1100",
+                              "vehicle_types.passenger.antenna_lever_arm_m=[-2, 0, 1]", "exchange.filter_lag_s=1",
+                              "solutions=[{name='p', sensors=['gnss'], uwb_bias_bounds_m=[-1, 1]}]",
+                              "sensors.gnss.oscillator='OCXO'", "start_utc=2021-04-28T19:00:00Z",
+                              "sensors.uwb.pairs=[['c1.0', 'c1.1']]", 'faults=[{kind="clock_jump", start_s=2}]'])
+    assert sc.duration_s == 60.0 and isinstance(sc.duration_s, float)
+    assert sc.vehicle_types["passenger"].antenna_lever_arm_m == (-2.0, 0.0, 1.0)
+    assert sc.solutions[0].uwb_bias_bounds_m == (-1.0, 1.0) and sc.exchange.filter_lag_s == 1.0
+    assert sc.faults[0].start_s == 2.0 and sc.sensors.uwb.pairs == [("c1.0", "c1.1")]
+
+
+@pytest.mark.parametrize("path", sorted(SCENARIOS.glob("*.toml")), ids=lambda p: p.name)
+def test_shipped_scenarios_load_and_their_resolved_form_reloads(tmp_path, path):
+    sc = load_scenario(path)
+    resolved = tmp_path / "scenario.resolved.toml"
+    resolved.write_text(sc.to_toml())
+    assert load_scenario(resolved) == sc
+
+
+@pytest.mark.parametrize(("override", "fix"), [
+    ("clusters.0.depart_s=1e9", "use a value <= 3600"),  # it would step SUMO through the warm-up for hours
+    ("clusters.0.depart_s=nan", "use a value <= 3600"),
+    ("network.origin_h_m=1e12", "use a value <= 9000"),
+    ("network.origin_h_m=-1000", "use a value >= -500"),
+])
+def test_physical_quantities_are_bounded(override, fix):
+    err = _error(override)
+    assert err.field == override.split("=")[0] and err.fix.startswith(fix), err.one_line()
+
+
+def test_bounds_admit_their_limits():
+    sc = load_scenario(None, ["clusters.0.depart_s=3600", "network.origin_h_m=-500"])
+    assert sc.clusters[0].depart_s == 3600.0
+    assert load_scenario(None, ["network.origin_h_m=9000"]).network.origin_h_m == 9000.0
+
+
+@pytest.mark.parametrize(("overrides", "field"), [
+    (['faults=[{kind="clock_jump", start_s=2.0, vehicles=["c1.9"]}]'], "faults.0.vehicles"),
+    (['faults=[{kind="clock_jump", start_s=1.0}, {kind="clock_jump", start_s=2.0, vehicles=["c1.0", "c2.0"]}]'],
+     "faults.1.vehicles"),
+    (['sensors.bearing.measuring=["c1.7"]'], "sensors.bearing.measuring"),
+    (['sensors.uwb.pairs=[["c1.0", "c1.5"]]'], "sensors.uwb.pairs"),
+    (['sensors.uwb.vehicle_profiles={"c1.5"="tdc"}'], "sensors.uwb.vehicle_profiles"),
+])
+def test_an_unknown_vehicle_is_blamed_on_the_field_that_names_it(overrides, field):
+    """The default scenario's one cluster c1 has vehicles c1.0 .. c1.2: the fix lists them."""
+    err = _error(*overrides)
+    assert err.field == field, err.one_line()
+    assert "c1.0 .. c1.2" in err.fix and "unknown vehicle" in err.message
+
+
+@pytest.mark.parametrize(("override", "field"), [
+    ('clusters.0.vehicle_type="bus"', "clusters.0.vehicle_type"),
+    ('clusters.0.vehicle_type=["passenger", "bus", "truck"]', "clusters.0.vehicle_type.1"),
+])
+def test_an_undefined_vehicle_type_names_the_cluster_field_and_the_defined_types(override, field):
+    err = _error(override)
+    assert err.field == field and "'bus'" in err.message, err.one_line()
+    assert "'passenger'" in err.fix and "'truck'" in err.fix
+
+
+@pytest.mark.parametrize("pairs", ['[["c1.0"]]', '[["c1.0", "c1.1", "c1.2"]]', '[["c1.0", 3]]', '["c1.0"]'])
+def test_a_uwb_pair_that_is_not_two_ids_names_the_pair(pairs):
+    err = _error(f"sensors.uwb.pairs={pairs}")
+    assert err.field == "sensors.uwb.pairs.0" and "two vehicle ids" in err.message, err.one_line()
+    assert err.fix.startswith('give "all" or a list of [id, id] pairs')
+    assert "literal" not in err.one_line()
+
+
+@pytest.mark.parametrize(("override", "field"), [
+    ("sensors.uwb.pairs='some'", "sensors.uwb.pairs"),
+    ("sensors.bearing.measuring=3", "sensors.bearing.measuring"),
+    ("sensors.bearing.measuring=[1]", "sensors.bearing.measuring.0"),
+    ('faults=[{kind="clock_jump", start_s=2.0, vehicles="c1.0"}]', "faults.0.vehicles"),
+    ("clusters.0.vehicle_type=3", "clusters.0.vehicle_type"),
+])
+def test_a_union_field_error_names_the_field_not_pydantic_internals(override, field):
+    """'all'-or-a-list and type-or-list fields: no pydantic member tag (literal['all'], str) in
+    the path, and a fix that is not "use one of 'all'" alone."""
+    err = _error(override)
+    assert err.field == field, err.one_line()
+    assert "literal" not in err.one_line() and ("list" in err.fix or "string" in err.fix), err.one_line()
+
+
+@pytest.mark.parametrize("key", ["network..name", ".seed", "seed.", "clusters..0.vehicles"])
+def test_a_set_path_with_an_empty_part_is_refused(key):
+    err = _error(f"{key}=1")
+    assert err.field == "--set" and repr(f"{key}=1") in err.message, err.one_line()
+
+
+def test_the_cli_says_each_mistake_in_one_line_exit_2(tmp_path):
+    for kv, field in [("duration_s=true", "duration_s"), ('sensors.bearing.measuring=["c1.77"]', "sensors.bearing.measuring"),
+                      ("network..name=1", "--set"), ("clusters.0.depart_s=1e9", "clusters.0.depart_s")]:
+        p = subprocess.run([sys.executable, "-m", "v2v", "scenario", "check", str(SCENARIOS / "open_highway.toml"),
+                            "--set", kv], cwd=tmp_path, capture_output=True, text=True, timeout=300)
+        lines = [ln for ln in p.stderr.splitlines() if ln.strip()]
+        assert p.returncode == 2 and len(lines) == 1 and "Traceback" not in p.stderr, p.stderr
+        assert lines[0].startswith(f"v2v: error: {field}: ") and " -- fix: " in lines[0], lines[0]
+        assert p.stdout == ""
