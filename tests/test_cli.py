@@ -382,3 +382,16 @@ def test_antenna_off_the_vehicle_body_is_refused(arm, capsys):
     err = [ln for ln in capsys.readouterr().err.splitlines() if ln.strip()]
     assert len(err) == 1 and err[0].startswith("v2v: error: vehicle_types.passenger.antenna_lever_arm_m: ") \
         and "-4.8 <= x <= 0" in err[0], err
+
+
+@pytest.mark.parametrize(("args", "field", "says"), [
+    (["/dev/null"], "SCENARIO", "is not a regular file"),
+    (["scenarios/open_highway.toml", "--set", 'network.net_file="/tmp"'], "network.net_file", "/tmp is a folder"),
+    (["scenarios/open_highway.toml", "--set", 'sensors.gnss.ephemeris=""'], "sensors.gnss.ephemeris", "'' is empty"),
+])
+def test_a_file_option_says_what_is_wrong_with_the_path(args, field, says, capsys, monkeypatch):
+    """Not a file is said as what it is (a folder, a device, empty), not as 'not found'."""
+    monkeypatch.chdir(Path(__file__).resolve().parents[1])
+    assert main(["scenario", "check", *args]) == 2
+    err = [ln for ln in capsys.readouterr().err.splitlines() if ln.strip()]
+    assert len(err) == 1 and err[0].startswith(f"v2v: error: {field}: ") and says in err[0], err

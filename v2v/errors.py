@@ -9,6 +9,7 @@ from __future__ import annotations
 
 import sys
 from collections.abc import Callable
+from pathlib import Path
 
 
 class UserError(Exception):
@@ -32,6 +33,17 @@ class UserError(Exception):
 
 
 EXIT_USER_ERROR = 2
+
+
+def not_a_file(path: str | Path) -> str | None:
+    """Why ``path`` cannot be read as a file ("not found", "is a folder", "is not a regular
+    file": /dev/null, a pipe), or None if it can: for the one-line errors of file options."""
+    p = Path(path)
+    if p.is_file():
+        return None
+    if p.is_dir():
+        return "is a folder"
+    return "is not a regular file" if p.exists() else "not found"
 
 
 def script_main(main: Callable[[], int | None], prog: str) -> int:

@@ -50,7 +50,7 @@ from dataclasses import dataclass, field
 from pathlib import Path
 from typing import Any, NamedTuple
 
-from v2v.errors import UserError
+from v2v.errors import UserError, not_a_file
 from v2v.frames import GeoReference
 
 NETS_DIR = Path(__file__).resolve().parents[1] / "sumo_nets"
@@ -257,8 +257,9 @@ def read_location(net_path: str | os.PathLike) -> NetLocation:
     ``xy_net = xy_projected + netOffset`` (SUMO convention, see :mod:`v2v.frames`).
     """
     path = Path(net_path)
-    if not path.is_file():
-        raise UserError(f"net file {path} not found", field="network.net_file")
+    why = not_a_file(path)
+    if why:
+        raise UserError(f"net file {path} {why}", field="network.net_file", fix="give a SUMO .net.xml[.gz] file")
     opener = gzip.open if path.suffix == ".gz" else open
     with opener(path, "rb") as f:
         for _, elem in ET.iterparse(f, events=("start",)):
@@ -652,9 +653,10 @@ def resolve_net(spec: Any) -> BuiltNet:
             routes=_read_routes(given_routes) if given_routes else built.routes,
         )
     net_path = Path(net_file)
-    if not net_path.is_file():
+    why = not_a_file(net_path)
+    if why:
         raise UserError(
-            f"net file {net_path} not found",
+            f"net file {net_path} {why}",
             field="network.net_file",
             fix=f"give an existing .net.xml[.gz], or use network.name = one of {shipped}",
         )

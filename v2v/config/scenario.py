@@ -33,7 +33,7 @@ from pydantic import (
 )
 
 from v2v.config.sections import ExchangeSection, SensorsSection, SolutionSection, paper_solutions
-from v2v.errors import UserError
+from v2v.errors import UserError, not_a_file
 from v2v.faults import FaultSection
 
 DEFAULT_SCENARIO_PATH = Path(__file__).with_name("default.toml")
@@ -438,10 +438,10 @@ def _allowed_keys_at(loc: tuple[Any, ...]) -> list[str]:
 def read_toml(path: Path, *, field: str, what: str) -> dict[str, Any]:
     """Read a TOML file (data only); a missing file or bad syntax is a one-line UserError."""
     p = Path(path)
-    if p.is_dir():
-        raise UserError(f"{what} {str(p)!r} is a folder", field=field, fix="give the path to a .toml file")
-    if not p.is_file():
-        raise UserError(f"{what} {str(p)!r} does not exist", field=field, fix="give the path to a .toml file")
+    why = not_a_file(p)
+    if why:
+        raise UserError(f"{what} {str(p)!r} {why.replace('not found', 'does not exist')}", field=field,
+                        fix="give the path to a .toml file")
     try:
         with p.open("rb") as f:
             return tomllib.load(f)
@@ -480,7 +480,7 @@ def load_scenario(path: str | Path | None = None, overrides: list[str] | tuple[s
     for ov in overrides:
         data = apply_override(data, ov)
     if overrides:
-        source += " with --set overrides"
+        source += " with the command line's --set / --seed"
     try:
         return Scenario.model_validate(data)
     except ValidationError as err:

@@ -11,7 +11,7 @@ from __future__ import annotations
 
 from pathlib import Path
 
-from v2v.errors import UserError
+from v2v.errors import UserError, not_a_file
 from v2v.sensors.gnss.ephemeris import Ephemeris
 
 
@@ -27,8 +27,9 @@ def ephemeris_source(ephemeris: str, gps_start_s: float, duration_s: float) -> E
     from v2v.sensors.gnss.rinex import read_rinex_nav
 
     path = Path(ephemeris)
-    if not path.is_file():
-        raise UserError(f"RINEX navigation file {str(path)!r} not found", field="sensors.gnss.ephemeris",
+    why = not_a_file(path) if ephemeris.strip() else "is empty"
+    if why:
+        raise UserError(f"RINEX navigation file {ephemeris!r} {why}", field="sensors.gnss.ephemeris",
                         fix='give an existing RINEX 2/3 nav file, or "nominal"')
     eph = read_rinex_nav(path)
     lo, hi = eph.validity()
