@@ -138,7 +138,7 @@ def main(argv: list[str] | None = None) -> int:
         t = lane_level_table(ep, truth, across_alert_limit_m=args.al)
         t.insert(0, "variant", variant)
         tables.append(t)
-        p = lane_level_table(ep.assign(vehicle="all"), truth, across_alert_limit_m=args.al)
+        p = lane_level_table(ep, truth, across_alert_limit_m=args.al, pool_vehicles=True)
         p.insert(0, "variant", variant)
         pooled.append(p)
     table = pd.concat(tables, ignore_index=True) if tables else pd.DataFrame()

@@ -194,3 +194,24 @@ def test_rows_skip_missing_keys_and_match_the_table():
     rows = lane_level_rows(df)
     assert [(r["solution"], r["vehicle"], r["epochs"]) for r in rows] == [("B", "c1.2", 2), ("A", "c1.1", 2), ("B", "c1.1", 3)]
     assert rows == lane_level_table(df).to_dict("records")
+
+
+def test_pooled_rows_count_each_vehicle_against_its_own_truth():
+    """Two followers on the lead's edge: c1.1 in the lane left of the lead (index 1) with 0.7 w of
+    across offset (the geometry rounds to 1: lane model right), c1.2 two lanes left by index with
+    1.2 w (the geometry says 1: lane model wrong); both estimated at the geometric lane. Pooled:
+    lane_model_ok 1/2, correct_lane 1/2, correct_lane_geom 1, same_edge 1; the per-vehicle rows
+    recounted over both vehicles."""
+    az = 0.0
+    t1 = -20.0 * _fwd_unit(az) + 0.7 * W * _left_unit(az)
+    t2 = -40.0 * _fwd_unit(az) + 1.2 * W * _left_unit(az)
+    df = pd.concat([_epochs(np.array([t1]), np.array([t1]), np.array([az]), lane_v=1, vehicle="c1.1"),
+                    _epochs(np.array([t2]), np.array([t2]), np.array([az]), lane_v=2, vehicle="c1.2")],
+                   ignore_index=True)
+    truth = pd.DataFrame({"t_s": 0.0, "vehicle": ["c1.0", "c1.1", "c1.2"], "cluster": "c1",
+                          "is_lead": [True, False, False], "edge": "A", "azimuth_rad": az})
+    per = lane_level_table(df, truth)
+    pooled = lane_level_table(df, truth, pool_vehicles=True)
+    assert list(per["lane_model_ok"]) == [1.0, 0.0] and list(pooled["vehicle"]) == ["all"]
+    assert pooled.loc[0, ["same_edge", "lane_model_ok", "correct_lane", "correct_lane_geom"]].tolist() == [1.0, 0.5, 0.5, 1.0]
+    assert pooled.loc[0, "epochs"] == 2

@@ -284,8 +284,11 @@ def _pct3(a: F64) -> list[float]:
 def lane_level_table(epochs: pd.DataFrame, truth: pd.DataFrame | None = None, *,
                      across_alert_limit_m: float = ACROSS_ALERT_LIMIT_M,
                      along_alert_limit_m: float = ALONG_ALERT_LIMIT_M,
-                     integrity_risk: float = INTEGRITY_RISK, k_sigma: float = K_SIGMA) -> pd.DataFrame:
-    """Lane-level table, one row per (solution, vehicle), in order of first appearance.
+                     integrity_risk: float = INTEGRITY_RISK, k_sigma: float = K_SIGMA,
+                     pool_vehicles: bool = False) -> pd.DataFrame:
+    """Lane-level table, one row per (solution, vehicle), in order of first appearance (with
+    ``pool_vehicles``: one row per solution, vehicle ``"all"``, over every vehicle's epochs, each
+    compared with its own vehicle's truth).
 
     Columns: ``epochs``, ``initialized`` (fraction), ``same_edge`` (fraction of initialized
     epochs on the lead's edge), ``lane_model_ok`` (geometric = true relative lane),
@@ -297,7 +300,7 @@ def lane_level_table(epochs: pd.DataFrame, truth: pd.DataFrame | None = None, *,
     """
     out = pd.DataFrame(lane_level_rows(epochs, truth, across_alert_limit_m=across_alert_limit_m,
                                        along_alert_limit_m=along_alert_limit_m, integrity_risk=integrity_risk,
-                                       k_sigma=k_sigma))
+                                       k_sigma=k_sigma, pool_vehicles=pool_vehicles))
     out.attrs.update({"across_alert_limit_m": across_alert_limit_m, "along_alert_limit_m": along_alert_limit_m,
                       "integrity_risk": integrity_risk, "k_pl": protection_factor(integrity_risk), "k_sigma": k_sigma})
     return out
@@ -306,7 +309,8 @@ def lane_level_table(epochs: pd.DataFrame, truth: pd.DataFrame | None = None, *,
 def lane_level_rows(epochs: pd.DataFrame, truth: pd.DataFrame | None = None, *,
                     across_alert_limit_m: float = ACROSS_ALERT_LIMIT_M,
                     along_alert_limit_m: float = ALONG_ALERT_LIMIT_M,
-                    integrity_risk: float = INTEGRITY_RISK, k_sigma: float = K_SIGMA) -> list[dict[str, Any]]:
+                    integrity_risk: float = INTEGRITY_RISK, k_sigma: float = K_SIGMA,
+                    pool_vehicles: bool = False) -> list[dict[str, Any]]:
     """The rows of :func:`lane_level_table` as dicts of Python scalars (what ``summary.json``
     stores), without building the frame."""
     df = epochs.reset_index(drop=True)
@@ -324,6 +328,8 @@ def lane_level_rows(epochs: pd.DataFrame, truth: pd.DataFrame | None = None, *,
     # gives them (rows with a missing key belong to no group)
     sol_code, sols = pd.factorize(np.asarray(q["solution"], dtype=object))
     veh_code, vehs = pd.factorize(np.asarray(q["vehicle"], dtype=object))
+    if pool_vehicles:  # (after the truth join, which is by vehicle)
+        veh_code, vehs = np.where(veh_code >= 0, 0, -1), pd.Index(["all"])
     n_veh = max(len(vehs), 1)  # pair code = solution code * n_veh + vehicle code; -1: a key missing
     pair_code, pairs = pd.factorize(np.where((sol_code >= 0) & (veh_code >= 0), sol_code * n_veh + veh_code, -1))
     rows = []
