@@ -294,7 +294,9 @@ def main(argv: list[str] | None = None) -> int:
     if args.quick:
         args.seeds = args.seeds[:1]
     out: Path = args.out
-    out.mkdir(parents=True, exist_ok=True)
+    from v2v.io.atomic import make_folder
+
+    make_folder(out)
     md = [f"# Carrier phase (seeds {args.seeds}, UWB profile {args.uwb_profile}"
           + (f"; every solution with {', '.join(args.solution_set)}" if args.solution_set else "") + ")", ""]
     if "init_drive" in args.parts:

@@ -388,7 +388,9 @@ def parse_args(argv: list[str] | None) -> argparse.Namespace:
 def main(argv: list[str] | None = None) -> int:
     args = parse_args(argv)
     out: Path = args.out
-    out.mkdir(parents=True, exist_ok=True)
+    from v2v.io.atomic import make_folder
+
+    make_folder(out)
     dur, seed, conv = args.duration_s, args.seed, args.converge_s
     keys = ["sweep", "case", "x", "vehicles", "lanes", "uwb_profile", "uwb_sigma_m", "bearing_sigma_deg", "solution"]
     per_vehicle = []

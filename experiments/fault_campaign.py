@@ -545,7 +545,9 @@ def main(argv: list[str] | None = None) -> int:
     ap.add_argument("--trials", type=int, default=None, help="blunder trials per size (default 3000; --quick 300)")
     args = ap.parse_args(argv)
     out: Path = args.out
-    out.mkdir(parents=True, exist_ok=True)
+    from v2v.io.atomic import make_folder
+
+    make_folder(out)
     kinds = list(args.faults or (QUICK if args.quick else FAULTS))
     rows = filter_level_rows(args.trials or (300 if args.quick else 3000))
     for kind in kinds:

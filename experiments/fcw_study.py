@@ -88,7 +88,9 @@ def main(argv: list[str] | None = None) -> int:
         args.duration_s = min(args.duration_s, 30.0)
         args.vehicles = min(args.vehicles, 3)
     out: Path = args.out
-    out.mkdir(parents=True, exist_ok=True)
+    from v2v.io.atomic import make_folder
+
+    make_folder(out)
     cfg = FcwConfig(ttc_threshold_s=args.ttc)
 
     sols, pairs, events, braking = [], [], [], []

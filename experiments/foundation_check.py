@@ -363,7 +363,9 @@ def main(argv: list[str] | None = None) -> int:
     p.add_argument("--no-osm", action="store_true", help="skip the OpenStreetMap import run")
     args = p.parse_args(argv)
     out: Path = args.out
-    out.mkdir(parents=True, exist_ok=True)
+    from v2v.io.atomic import make_folder
+
+    make_folder(out)
     cases = default_cases(args.quick)
     if args.duration is not None:
         cases = [Case(**{**asdict(c), "duration_s": args.duration}) for c in cases]

@@ -372,7 +372,9 @@ def main(argv: list[str] | None = None) -> int:
     if args.quick:
         args.duration_s = min(args.duration_s, 15.0)
     out: Path = args.out
-    out.mkdir(parents=True, exist_ok=True)
+    from v2v.io.atomic import make_folder
+
+    make_folder(out)
 
     runs, rows, per_vehicle, skyplots = [], [], [], []
     counts: dict[str, pd.DataFrame] = {}

@@ -124,7 +124,9 @@ def main(argv: list[str] | None = None) -> int:
         args.duration_s = min(args.duration_s, 20.0)
         args.vehicles = min(args.vehicles, 3)
     out: Path = args.out
-    out.mkdir(parents=True, exist_ok=True)
+    from v2v.io.atomic import make_folder
+
+    make_folder(out)
 
     tables, pooled, epochs_by_variant = [], [], {}
     for variant in args.variants:

@@ -293,7 +293,9 @@ def azimuth_figure(folder: Path, net: str, path: Path) -> None:
 def main(argv: list[str] | None = None) -> int:
     args = parse_args(argv)
     out: Path = args.out
-    out.mkdir(parents=True, exist_ok=True)
+    from v2v.io.atomic import make_folder
+
+    make_folder(out)
     per_run, per_az = [], []
     for net in args.nets:
         for i, seed in enumerate(args.seeds):

@@ -218,7 +218,9 @@ def main(argv: list[str] | None = None) -> int:
         args.vehicles = min(args.vehicles, 3)
         args.speed_step_mps = max(args.speed_step_mps, 2.0)
     out: Path = args.out
-    out.mkdir(parents=True, exist_ok=True)
+    from v2v.io.atomic import make_folder
+
+    make_folder(out)
     from v2v.config.scenario import load_scenario
     from v2v.sensors.uwb import plot_uwb_error_figures
 

@@ -179,7 +179,9 @@ def main(argv: list[str] | None = None) -> int:
         args.duration_s = min(args.duration_s, 60.0)
         args.census_every_s = max(args.census_every_s, 1.0)
     out: Path = args.out
-    out.mkdir(parents=True, exist_ok=True)
+    from v2v.io.atomic import make_folder
+
+    make_folder(out)
     from v2v.config.scenario import load_scenario
     from v2v.pipeline import build_bearing
     from v2v.sensors.uwb import profile_by_name

@@ -103,6 +103,7 @@ def test_fcw_study_quick(tmp_path: Path):
     ("fcw_study.py", ["--vehicles", "1"], "clusters.0.vehicles"),
     ("lane_level.py", ["--rinex", "/nonexistent/brdc.nav", "--duration-s", "2"], "sensors.gnss.ephemeris"),
     ("carrier_phase.py", ["--seeds", "-1"], "seed"),
+    ("covariance_analysis.py", ["--quick"], "--out"),  # --out below a file (every script makes it the same way)
 ])
 def test_experiment_scripts_refuse_bad_input_in_one_line(tmp_path, script, args, field):
     """An experiment run as a script treats a user's mistake as `v2v` does: one line naming the
@@ -111,6 +112,9 @@ def test_experiment_scripts_refuse_bad_input_in_one_line(tmp_path, script, args,
     import sys
 
     out = tmp_path / "out"
+    if field == "--out":
+        out.write_text("mine")
+        out = out / "sub"
     p = subprocess.run([sys.executable, str(EXP / script), "--out", str(out), *args], capture_output=True, text=True,
                        timeout=300)
     lines = [ln for ln in p.stderr.splitlines() if ln.strip()]

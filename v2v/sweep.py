@@ -66,6 +66,7 @@ from pathlib import Path
 from typing import Any
 
 from v2v.errors import UserError
+from v2v.io.atomic import make_folder
 
 STUDY_KEYS = ("base", "seeds", "replay", "save_measurements", "set", "grid")
 META_COLUMNS = ("run_id", "seed", "status", "error", "note", "wall_s")
@@ -700,7 +701,7 @@ def run_study(
         else:
             _check_host(host)
     created = not out.exists()
-    _make_folder(out)
+    make_folder(out)
     try:
         with _FolderLock(out):
             _check_out_folder(study, out)  # again, locked: another sweep may have written to it meanwhile
@@ -724,7 +725,7 @@ def _check_out_folder(study: Study, out: Path) -> None:
     lists is a run of this study (a copy or a moved study file, or one extended by seeds or
     grid values: nothing of the folder is dropped)."""
     if not out.is_dir():
-        return  # new (or not a folder: _make_folder says so)
+        return  # new (or not a folder: make_folder says so)
     sweep_json, runs_file = out / SWEEP_FILE, out / RUNS_FILE
     if not sweep_json.exists() and not runs_file.exists():
         from v2v.io.atomic import RUN_FOLDER_MARKERS
@@ -763,15 +764,6 @@ def _listed_run_ids(out: Path) -> set[str]:
         if not runs_dir.is_dir():
             return set()
         return {d.name for d in runs_dir.iterdir() if d.is_dir() and not d.name.startswith(".")}
-
-
-def _make_folder(out: Path) -> None:
-    """``out`` and its parents, or a one-line UserError naming --out."""
-    try:
-        out.mkdir(parents=True, exist_ok=True)
-    except OSError as exc:
-        raise UserError(f"cannot create the folder {out} ({exc.strerror or exc})", field="--out",
-                        fix="give a folder (not a file) that can be written") from None
 
 
 def _scan(study: Study, runs_dir: Path) -> tuple[dict[str, dict[str, Any]], list[RunSpec]]:
@@ -988,7 +980,7 @@ def write_report(sweep_dir: str | Path, out_dir: str | Path | None = None) -> Re
         raise UserError(f"{runs_file} lists {n} run(s), none finished", field="DIR",
                         fix="run the study (again) first; failed runs have their one-line error in the `error` column")
     out = Path(out_dir) if out_dir is not None else src
-    _make_folder(out)
+    make_folder(out)
     grid_cols = _grid_columns(src, df)
     df, solutions = _with_vehicle_means(df)
     agg = aggregate_runs(df, grid_cols)

@@ -77,6 +77,18 @@ def atomic_write_parquet(path: Path, table: Any) -> None:
     atomic_write(path, lambda p: pq.write_table(table, p, **options))
 
 
+def make_folder(out: Path, *, what: str = "--out") -> None:
+    """``out`` and its parents (a folder that is there is fine), or a one-line
+    :class:`~v2v.errors.UserError` naming ``what`` (the option that gave the path)."""
+    from v2v.errors import UserError
+
+    try:
+        Path(out).mkdir(parents=True, exist_ok=True)
+    except OSError as exc:
+        raise UserError(f"cannot create the folder {out} ({exc.strerror or exc})", field=what,
+                        fix="give a folder (not a file) that can be written") from None
+
+
 RUN_FOLDER_MARKERS = ("summary.json", "scenario.resolved.toml")
 # everything a run writes into its folder (README, Outputs)
 RUN_FILES = frozenset({*RUN_FOLDER_MARKERS, "truth.parquet", "epochs.parquet", "measurements.parquet", "replay.rrd"})
