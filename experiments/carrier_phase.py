@@ -291,6 +291,9 @@ def main(argv: list[str] | None = None) -> int:
                          "or gnss_min_satellites=4 (TOML values)")
     args = ap.parse_args(argv)
     args.solution_set = tuple(args.solution_set)
+    from v2v.errors import check_positive
+
+    check_positive(args.keep, "--keep")
     if args.quick:
         args.seeds = args.seeds[:1]
     out: Path = args.out

@@ -376,7 +376,8 @@ def parse_args(argv: list[str] | None) -> argparse.Namespace:
     ap.add_argument("--outage-start-s", type=float, default=30.0)
     ap.add_argument("--outage-duration-s", type=float, default=30.0)
     ap.add_argument("--quick", action="store_true",
-                    help="smoke test: 2 and 3 vehicles for 30 s, one 32 s outage run; no lane/quality sweeps")
+                    help="smoke test: 2 and 3 vehicles for 30 s, one 32 s outage run; no lane/quality sweeps "
+                         "(replaces --duration-s, --converge-s, --vehicles, --vehicles-3lanes and the outage options)")
     args = ap.parse_args(argv)
     if args.quick:
         args.duration_s, args.converge_s = 30.0, 18.0

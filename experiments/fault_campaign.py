@@ -544,12 +544,18 @@ def main(argv: list[str] | None = None) -> int:
     ap.add_argument("--faults", nargs="*", choices=sorted(FAULTS), help="subset of real-scenario fault kinds")
     ap.add_argument("--trials", type=int, default=None, help="blunder trials per size (default 3000; --quick 300)")
     args = ap.parse_args(argv)
-    out: Path = args.out
+    from v2v.errors import UserError, check_positive
     from v2v.io.atomic import make_folder
 
+    if args.trials is not None:
+        check_positive(args.trials, "--trials")
+    if args.faults == []:
+        raise UserError("--faults names no fault kind", field="--faults",
+                        fix=f"name one or more of {', '.join(sorted(FAULTS))}, or leave --faults out for all")
+    out: Path = args.out
     make_folder(out)
-    kinds = list(args.faults or (QUICK if args.quick else FAULTS))
-    rows = filter_level_rows(args.trials or (300 if args.quick else 3000))
+    kinds = list(args.faults if args.faults is not None else (QUICK if args.quick else FAULTS))
+    rows = filter_level_rows(args.trials if args.trials is not None else (300 if args.quick else 3000))
     for kind in kinds:
         rows += run_fault(kind, out, quick=args.quick)
     if not args.quick:

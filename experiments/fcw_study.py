@@ -84,6 +84,9 @@ def main(argv: list[str] | None = None) -> int:
     ll.add_common_arguments(ap, duration_s=180.0, vehicles=4)
     ap.add_argument("--ttc-threshold-s", dest="ttc", type=float, default=FcwConfig().ttc_threshold_s)
     args = ap.parse_args(argv)
+    from v2v.errors import check_positive
+
+    check_positive(args.ttc, "--ttc-threshold-s")
     if args.quick:
         args.duration_s = min(args.duration_s, 30.0)
         args.vehicles = min(args.vehicles, 3)

@@ -120,6 +120,9 @@ def main(argv: list[str] | None = None) -> int:
     ap.add_argument("--lanes", nargs="+", type=int, default=[0, 1])
     ap.add_argument("--across-alert-limit-m", dest="al", type=float, default=ACROSS_ALERT_LIMIT_M)
     args = ap.parse_args(argv)
+    from v2v.errors import check_positive
+
+    check_positive(args.al, "--across-alert-limit-m")
     if args.quick:
         args.duration_s = min(args.duration_s, 20.0)
         args.vehicles = min(args.vehicles, 3)

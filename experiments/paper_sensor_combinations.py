@@ -103,7 +103,8 @@ def parse_args(argv: list[str] | None) -> argparse.Namespace:
     ap.add_argument("--nets", nargs="+", default=list(NETS), choices=NETS + EXTRA_NETS)
     ap.add_argument("--duration-s", type=float, default=60.0)
     ap.add_argument("--settle-s", type=float, default=10.0, help="seconds after the first epoch left out of the statistics")
-    ap.add_argument("--quick", action="store_true", help="1 seed, 25 s, hospital_loop only (smoke test)")
+    ap.add_argument("--quick", action="store_true",
+                    help="1 seed, 25 s, hospital_loop only (smoke test; replaces --seeds, --duration-s and --nets)")
     args = ap.parse_args(argv)
     if args.quick:
         args.seeds, args.duration_s, args.nets = args.seeds[:1], 25.0, ["hospital_loop"]

@@ -213,6 +213,9 @@ def main(argv: list[str] | None = None) -> int:
     ap.add_argument("--seed", type=int, default=5)
     ap.add_argument("--quick", action="store_true")
     args = ap.parse_args(argv)
+    from v2v.errors import check_positive
+
+    check_positive(args.speed_step_mps, "--speed-step-mps")
     if args.quick:
         args.duration_s = min(args.duration_s, 45.0)
         args.vehicles = min(args.vehicles, 3)

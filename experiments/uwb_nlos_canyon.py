@@ -175,6 +175,9 @@ def main(argv: list[str] | None = None) -> int:
     ap.add_argument("--seed", type=int, default=3)
     ap.add_argument("--quick", action="store_true")
     args = ap.parse_args(argv)
+    from v2v.errors import check_positive
+
+    check_positive(args.census_every_s, "--census-every-s")
     if args.quick:
         args.duration_s = min(args.duration_s, 60.0)
         args.census_every_s = max(args.census_every_s, 1.0)

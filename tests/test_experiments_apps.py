@@ -104,6 +104,8 @@ def test_fcw_study_quick(tmp_path: Path):
     ("lane_level.py", ["--rinex", "/nonexistent/brdc.nav", "--duration-s", "2"], "sensors.gnss.ephemeris"),
     ("carrier_phase.py", ["--seeds", "-1"], "seed"),
     ("covariance_analysis.py", ["--quick"], "--out"),  # --out below a file (every script makes it the same way)
+    ("fault_campaign.py", ["--quick", "--trials", "0"], "--trials"),  # (0 meant the default, 300)
+    ("lane_level.py", ["--quick", "--across-alert-limit-m", "-1"], "--across-alert-limit-m"),
 ])
 def test_experiment_scripts_refuse_bad_input_in_one_line(tmp_path, script, args, field):
     """An experiment run as a script treats a user's mistake as `v2v` does: one line naming the

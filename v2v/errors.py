@@ -7,6 +7,7 @@ status 2; it never shows a traceback for these.
 
 from __future__ import annotations
 
+import math
 import sys
 from collections.abc import Callable
 from pathlib import Path
@@ -44,6 +45,13 @@ def not_a_file(path: str | Path) -> str | None:
     if p.is_dir():
         return "is a folder"
     return "is not a regular file" if p.exists() else "not found"
+
+
+def check_positive(value: float, option: str) -> None:
+    """A script option that must be a positive, finite number: else the one-line
+    :class:`UserError` naming it (``--keep 0``, ``--trials -5``, an alert limit of -1 m)."""
+    if not (value > 0 and math.isfinite(value)):
+        raise UserError(f"{value!r} is not a positive number", field=option, fix=f"give {option} > 0")
 
 
 def script_main(main: Callable[[], int | None], prog: str) -> int:
