@@ -724,18 +724,15 @@ def _blocks_frame(blocks: Sequence[EpochBlock]) -> pd.DataFrame:
 
 def empty_epochs_frame() -> pd.DataFrame:
     """``epochs.parquet``'s table of a run that estimated nothing (no solution, or no cluster
-    with a follower): no rows, the columns every epochs table has (the per-type update
-    counts and azimuth errors depend on the solutions, so they are not there), typed as
-    :func:`_blocks_frame` types them."""
-    import pandas as pd
-
-    cols: dict[str, Any] = {"t_s": np.zeros(0), "cluster": pd.Series([], dtype="str"),
-                            "solution": pd.Series([], dtype="str"), "vehicle": pd.Series([], dtype="str"),
-                            "initialized": np.zeros(0, dtype=bool)}
-    cols.update({c: np.zeros(0) for c in EPOCH_COLUMNS})
-    cols.update({"true_lane_index": np.zeros(0, dtype=np.int64), "lead_lane_index": np.zeros(0, dtype=np.int64),
-                 "lane_width_m": np.zeros(0), "integrity_available": np.zeros(0, dtype=bool)})
-    return pd.DataFrame(cols)
+    with a follower): :func:`_blocks_frame` of an epoch without vehicles (so the columns every
+    epochs table has; the per-type update counts and azimuth errors depend on the solutions,
+    so they are not there), with the run's ``cluster`` column and its names typed as strings."""
+    b = EpochBlock(t_s=0.0, solution="", vehicles=[], initialized=[], nums=np.zeros((0, len(EPOCH_COLUMNS))),
+                   true_lane=[], lead_lane=0, lane_width=[], count_keys=(), counts=np.zeros((0, 0), dtype=np.int64),
+                   integrity=[], azimuth_err=None, lead_azimuth_err=None)
+    frame = _blocks_frame([b]).astype({"solution": "str", "vehicle": "str"})
+    frame.insert(1, "cluster", frame["solution"])  # (as the run inserts it: after t_s)
+    return frame
 
 
 @dataclass

@@ -103,9 +103,9 @@ def check_run_target(final: Path, *, what: str = "--out") -> None:
     from v2v.errors import UserError
 
     final = Path(final)
-    here = Path.cwd().resolve()
-    if final.resolve() == here or final.resolve() in here.parents:
-        raise UserError(f"{final} is the current folder{'' if final.resolve() == here else ' or holds it'} (a run replaces "
+    here, target = Path.cwd().resolve(), final.resolve()
+    if target == here or target in here.parents:
+        raise UserError(f"{final} is the current folder{'' if target == here else ' or holds it'} (a run replaces "
                         f"its folder)", field=what, fix="give a subfolder, e.g. --out runs/NAME")
     if not final.exists() and not final.is_symlink():
         return
