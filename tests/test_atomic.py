@@ -9,7 +9,14 @@ import stat
 
 import pytest
 
-from v2v.io.atomic import RunFolder, atomic_write_json, atomic_write_parquet, umask
+from v2v.io.atomic import (
+    RunFolder,
+    atomic_write_json,
+    atomic_write_parquet,
+    discard_empty_made_folders,
+    make_folder,
+    umask,
+)
 
 
 @pytest.fixture
@@ -81,3 +88,38 @@ def test_parquet_tables_round_trip_bit_for_bit_with_float_columns_plain(tmp_path
                 dictionary = any("DICTIONARY" in e for e in col.encodings)
                 if col.physical_type != "BOOLEAN":  # (Parquet bit-packs booleans: never a dictionary)
                     assert dictionary == (col.path_in_schema not in ("t_s", "err_m")), (name, col.path_in_schema)
+
+
+def test_a_failed_script_takes_away_only_the_folders_it_made_that_hold_no_file(tmp_path):
+    """make_folder remembers the topmost folder it created; discard_empty_made_folders removes
+    it while it holds only folders, keeps it once a file is in it, and never touches a folder
+    that was there before (the user's)."""
+    mine = tmp_path / "mine"
+    mine.mkdir()
+    make_folder(mine / "out")             # new: made here
+    (mine / "out" / "runs" / "a").mkdir(parents=True)
+    make_folder(tmp_path / "new" / "deep")  # new, two levels
+    make_folder(mine)                     # there before: nothing to remember
+    kept = tmp_path / "kept"
+    make_folder(kept / "runs")
+    (kept / "runs" / "result.csv").write_text("x")
+    discard_empty_made_folders()
+    assert mine.is_dir() and not (mine / "out").exists() and not (tmp_path / "new").exists()
+    assert (kept / "runs" / "result.csv").is_file()
+    discard_empty_made_folders()  # nothing left to do
+    assert mine.is_dir()
+
+
+def test_a_failed_run_removes_the_parent_folders_it_made_but_not_the_users(tmp_path):
+    """RunFolder makes the parents of its target; a run that fails takes the new ones away again
+    (while they hold no file) and leaves a parent that was there before."""
+    with pytest.raises(RuntimeError):
+        with RunFolder(tmp_path / "a" / "b" / "run"):
+            raise RuntimeError("the run failed")
+    assert list(tmp_path.iterdir()) == []
+    (tmp_path / "a").mkdir()
+    (tmp_path / "a" / "notes.txt").write_text("mine")
+    with pytest.raises(RuntimeError):
+        with RunFolder(tmp_path / "a" / "b" / "run"):
+            raise RuntimeError("the run failed")
+    assert sorted(p.name for p in (tmp_path / "a").iterdir()) == ["notes.txt"]

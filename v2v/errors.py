@@ -57,12 +57,18 @@ def check_positive(value: float, option: str) -> None:
 def script_main(main: Callable[[], int | None], prog: str) -> int:
     """Run a script's ``main()`` as ``v2v`` runs a command (the experiments' ``__main__``): a
     :class:`UserError` is one line on stderr, ``<prog>: error: <field>: ... -- fix: ...``, and
-    exit status 2; Ctrl-C is one line and 130; anything else propagates (a bug: its traceback)."""
+    exit status 2; Ctrl-C is one line and 130; anything else propagates (a bug: its traceback).
+    After a user's error or Ctrl-C, the folders the script made that hold no file (its ``--out``
+    and ``runs/`` made before a scenario was refused) are taken away again."""
+    from v2v.io.atomic import discard_empty_made_folders
+
     try:
         return int(main() or 0)
     except UserError as exc:
+        discard_empty_made_folders()
         print(f"{prog}: error: {exc.one_line()}", file=sys.stderr)
         return EXIT_USER_ERROR
     except KeyboardInterrupt:
+        discard_empty_made_folders()
         print(f"{prog}: interrupted", file=sys.stderr)
         return 130

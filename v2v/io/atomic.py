@@ -77,16 +77,53 @@ def atomic_write_parquet(path: Path, table: Any) -> None:
     atomic_write(path, lambda p: pq.write_table(table, p, **options))
 
 
+# the topmost folder each :func:`make_folder` call of this process created (for
+# :func:`discard_empty_made_folders`)
+_MADE_FOLDERS: list[Path] = []
+
+
 def make_folder(out: Path, *, what: str = "--out") -> None:
     """``out`` and its parents (a folder that is there is fine), or a one-line
-    :class:`~v2v.errors.UserError` naming ``what`` (the option that gave the path)."""
+    :class:`~v2v.errors.UserError` naming ``what`` (the option that gave the path). The
+    topmost folder it creates is remembered, so that a script stopped by a user's mistake
+    can take it away again while it holds no file (:func:`discard_empty_made_folders`)."""
     from v2v.errors import UserError
 
+    out = Path(out)
+    first_new = _first_missing(out)
     try:
-        Path(out).mkdir(parents=True, exist_ok=True)
+        out.mkdir(parents=True, exist_ok=True)
     except OSError as exc:
         raise UserError(f"cannot create the folder {out} ({exc.strerror or exc})", field=what,
                         fix="give a folder (not a file) that can be written") from None
+    if first_new is not None:
+        _MADE_FOLDERS.append(first_new)
+
+
+def discard_empty_made_folders() -> None:
+    """Remove each folder :func:`make_folder` created in this process that holds no file
+    (only empty folders, such as an experiment's ``runs/`` made before a scenario was
+    refused), so a failed script leaves nothing that looks like a result; a folder with
+    any file (or link) in it is kept as it is."""
+    while _MADE_FOLDERS:
+        _remove_if_no_files(_MADE_FOLDERS.pop())
+
+
+def _first_missing(path: Path) -> Path | None:
+    """The topmost of ``path`` and its parents that does not exist (what ``mkdir(parents=True)``
+    of ``path`` would create first), or None if ``path`` exists."""
+    return next((p for p in reversed([path, *path.parents]) if not p.exists() and not p.is_symlink()), None)
+
+
+def _remove_if_no_files(top: Path) -> None:
+    """Remove the folder ``top`` if it holds nothing but folders (no file, no link); else keep it."""
+    if not top.is_dir() or top.is_symlink():
+        return
+    try:
+        if all(not files and all(not (Path(root) / d).is_symlink() for d in dirs) for root, dirs, files in os.walk(top)):
+            shutil.rmtree(top)
+    except OSError:
+        pass
 
 
 RUN_FOLDER_MARKERS = ("summary.json", "scenario.resolved.toml")
@@ -141,11 +178,13 @@ class RunFolder:
         self.final = Path(final).resolve()
         self.what = what
         self.staging: Path | None = None
+        self.made_parent: Path | None = None  # the topmost parent folder __enter__ created
 
     def __enter__(self) -> Path:
         from v2v.errors import UserError
 
         check_run_target(self.final, what=self.what)
+        self.made_parent = _first_missing(self.final.parent)
         try:
             self.final.parent.mkdir(parents=True, exist_ok=True)
             self.staging = Path(tempfile.mkdtemp(prefix=f".{self.final.name}.", suffix=".partial", dir=self.final.parent))
@@ -158,6 +197,8 @@ class RunFolder:
         assert self.staging is not None
         if exc_type is not None:
             shutil.rmtree(self.staging, ignore_errors=True)
+            if self.made_parent is not None:  # the parents made for this run go too while they hold no file
+                _remove_if_no_files(self.made_parent)
             return
         os.chmod(self.staging, 0o777 & ~umask())  # the mode mkdir would give (mkdtemp's is private)
         if self.final.exists():
