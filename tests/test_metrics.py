@@ -158,6 +158,14 @@ def test_solution_statistics_by_hand():
     w = out["S1"]["vehicles"]["c1.1"]
     assert w["availability"] == 0.5 and w["along"]["mean"] == 0.5 and w["along"]["std"] == 0.0
     assert np.isnan(out["S2"]["vehicles"]["c1.1"]["azimuth_err_deg"]["mean"])  # its one initialized azimuth is NaN
+    # only the solutions named as estimating azimuths get the azimuth statistics (the column is NaN for the others)
+    # (the lead's azimuth error is the epoch's, repeated on each of its vehicle rows: counted once an epoch)
+    df["t_s"] = [0.0, 0.0, 0.1, 0.2, 0.0, 0.1]
+    df["lead_azimuth_err_rad"] = np.where(df["solution"] == "S2", np.radians([0.5, 0.5, 1.0, 3.0, 0, 0]), nan)
+    named = solution_statistics(df, {}, azimuth_solutions={"S2"})
+    assert "lead_azimuth_err_deg" not in named["S1"] and "azimuth_err_deg" not in named["S1"]["vehicles"]["c1.1"]
+    assert named["S2"]["lead_azimuth_err_deg"]["n"] == 3 and named["S2"]["lead_azimuth_err_deg"]["mean"] == pytest.approx(1.5)
+    assert named["S2"]["vehicles"]["c1.2"]["azimuth_err_deg"] == v["azimuth_err_deg"]
     # a vehicle with no initialized epoch: NaN statistics, no exceedance rate
     df.loc[df["solution"] == "S1", "initialized"] = False
     w = solution_statistics(df, {})["S1"]["vehicles"]["c1.1"]

@@ -641,7 +641,8 @@ def _run_scenario(scenario: Scenario, out_dir: Path, *, quiet: bool, replay: boo
         if len(epochs_df):
             # per-update statistics from the compact logs, one kind of one solution at a time
             meas = {key: rec.log.kind_statistics() for key, rec in recs.items()}
-            sol_stats = solution_statistics(epochs_df, {}, measurements=meas)
+            sol_stats = solution_statistics(epochs_df, {}, measurements=meas, azimuth_solutions={
+                s.name for s in scenario.solutions if s.azimuth == "estimated"})
             from v2v.metrics.lane import lane_level_rows
 
             truth_cols = ["t_s", "vehicle", "cluster", "is_lead", "edge", "azimuth_rad"]  # what attach_truth reads

@@ -3,6 +3,7 @@
 from __future__ import annotations
 
 import re
+from collections.abc import Collection
 from typing import Any
 
 import numpy as np
@@ -24,13 +25,17 @@ def _skipna_mean(a: np.ndarray) -> float:
 
 
 def solution_statistics(epochs: pd.DataFrame, updates: dict[str, pd.DataFrame],
-                        measurements: dict[str, dict[str, Any]] | None = None) -> dict[str, Any]:
+                        measurements: dict[str, dict[str, Any]] | None = None,
+                        azimuth_solutions: Collection[str] | None = None) -> dict[str, Any]:
     """Statistics per solution and vehicle over the epochs where the vehicle is initialized.
 
     ``availability`` is the fraction of output epochs with an initialized estimate.
     ``measurements``: per solution, the per-update statistics already reduced (e.g. by
     :func:`update_kind_statistics` kind by kind from a streamed run's compact log); used
-    instead of ``updates`` for the solutions it names.
+    instead of ``updates`` for the solutions it names. ``azimuth_solutions``: the solutions
+    that estimate azimuths (``azimuth = "estimated"``); only they get the azimuth error
+    statistics (``azimuth_err_deg`` per vehicle, ``lead_azimuth_err_deg``), whose columns are
+    NaN for the others. None: every solution with the columns gets them.
     """
     out: dict[str, Any] = {}
     for sol, g_sol in epochs.groupby("solution", sort=False):
@@ -40,7 +45,8 @@ def solution_statistics(epochs: pd.DataFrame, updates: dict[str, pd.DataFrame],
         codes, names = pd.factorize(g_sol["vehicle"], sort=True)
         col = {c: g_sol[c].to_numpy(dtype=float) for c in _ERROR_COLUMNS}
         initialized = g_sol["initialized"].to_numpy(dtype=bool)
-        azimuth = g_sol["azimuth_err_rad"].to_numpy(dtype=float) if "azimuth_err_rad" in g_sol else None
+        az_est = azimuth_solutions is None or str(sol) in azimuth_solutions
+        azimuth = g_sol["azimuth_err_rad"].to_numpy(dtype=float) if az_est and "azimuth_err_rad" in g_sol else None
         phase = "phase_state" in g_sol
         per_vehicle: dict[str, Any] = {}
         for k, veh in enumerate(names):
@@ -62,8 +68,11 @@ def solution_statistics(epochs: pd.DataFrame, updates: dict[str, pd.DataFrame],
                 entry["ambiguity"] = ambiguity_statistics(g_sol.iloc[ok])
             per_vehicle[str(veh)] = entry
         sol_entry: dict[str, Any] = {"vehicles": per_vehicle}
-        if "lead_azimuth_err_rad" in g_sol:
-            az = g_sol["lead_azimuth_err_rad"].dropna().to_numpy()
+        if az_est and "lead_azimuth_err_rad" in g_sol:
+            # one value per cluster epoch (each of the epoch's vehicle rows repeats its lead's)
+            keys = [c for c in ("cluster", "t_s") if c in g_sol]
+            lead = g_sol.drop_duplicates(keys) if keys else g_sol
+            az = lead["lead_azimuth_err_rad"].dropna().to_numpy()
             sol_entry["lead_azimuth_err_deg"] = error_statistics(np.degrees(az))
         if measurements is not None and str(sol) in measurements:
             if measurements[str(sol)]:
