@@ -366,23 +366,27 @@ def parse_args(argv: list[str] | None) -> argparse.Namespace:
     ap = argparse.ArgumentParser(description=__doc__.splitlines()[0])
     ap.add_argument("--out", type=Path, required=True, help="output folder")
     ap.add_argument("--seed", type=int, default=1)
-    ap.add_argument("--duration-s", type=float, default=45.0, help="per sweep run")
-    ap.add_argument("--converge-s", type=float, default=20.0, help="average sigma over t >= this")
-    ap.add_argument("--vehicles", type=int, nargs="+", default=list(range(2, 11)))
-    ap.add_argument("--vehicles-3lanes", type=int, nargs="+", default=[3, 6, 9],
-                    help="vehicle counts of the three-lane vehicle sweep (none: skip)")
+    full = {"duration_s": 45.0, "converge_s": 20.0, "vehicles": list(range(2, 11)), "vehicles_3lanes": [3, 6, 9],
+            "outage_vehicles": [3, 5], "outage_start_s": 30.0, "outage_duration_s": 30.0}
+    quick = {"duration_s": 30.0, "converge_s": 18.0, "vehicles": [2, 3], "vehicles_3lanes": [],
+             "outage_vehicles": [3], "outage_start_s": 20.0, "outage_duration_s": 10.0}
+    # (defaults None: what is not given comes from the full or the --quick set; what is given wins)
+    ap.add_argument("--duration-s", type=float, help="per sweep run (default 45; --quick 30)")
+    ap.add_argument("--converge-s", type=float, help="average sigma over t >= this (default 20; --quick 18)")
+    ap.add_argument("--vehicles", type=int, nargs="+", help="cluster sizes of the vehicle sweep (default 2..10; --quick 2 3)")
+    ap.add_argument("--vehicles-3lanes", type=int, nargs="*",
+                    help="vehicle counts of the three-lane vehicle sweep (default 3 6 9; none or --quick: skip)")
     ap.add_argument("--lanes-vehicles", type=int, default=6, help="cluster size of the lane sweep")
-    ap.add_argument("--outage-vehicles", type=int, nargs="+", default=[3, 5])
-    ap.add_argument("--outage-start-s", type=float, default=30.0)
-    ap.add_argument("--outage-duration-s", type=float, default=30.0)
+    ap.add_argument("--outage-vehicles", type=int, nargs="+", help="(default 3 5; --quick 3)")
+    ap.add_argument("--outage-start-s", type=float, help="(default 30; --quick 20)")
+    ap.add_argument("--outage-duration-s", type=float, help="(default 30; --quick 10)")
     ap.add_argument("--quick", action="store_true",
                     help="smoke test: 2 and 3 vehicles for 30 s, one 32 s outage run; no lane/quality sweeps "
-                         "(replaces --duration-s, --converge-s, --vehicles, --vehicles-3lanes and the outage options)")
+                         "(the options above that are given still apply)")
     args = ap.parse_args(argv)
-    if args.quick:
-        args.duration_s, args.converge_s = 30.0, 18.0
-        args.vehicles, args.vehicles_3lanes, args.outage_vehicles = [2, 3], [], [3]
-        args.outage_start_s, args.outage_duration_s = 20.0, 10.0
+    for key, value in (quick if args.quick else full).items():
+        if getattr(args, key) is None:
+            setattr(args, key, value)
     return args
 
 

@@ -99,15 +99,19 @@ PAPER_AZ = {  # Tables 7 (vehicle 1) and 8 (vehicle 2), first half of the test
 def parse_args(argv: list[str] | None) -> argparse.Namespace:
     ap = argparse.ArgumentParser(description=__doc__.splitlines()[0])
     ap.add_argument("--out", type=Path, required=True, help="output folder")
-    ap.add_argument("--seeds", type=int, nargs="+", default=[1, 2, 3])
-    ap.add_argument("--nets", nargs="+", default=list(NETS), choices=NETS + EXTRA_NETS)
-    ap.add_argument("--duration-s", type=float, default=60.0)
+    # (defaults None: what is not given comes from the full or the --quick set; what is given wins)
+    ap.add_argument("--seeds", type=int, nargs="+", help="(default 1 2 3; --quick 1)")
+    ap.add_argument("--nets", nargs="+", choices=NETS + EXTRA_NETS, help=f"(default {' '.join(NETS)}; --quick hospital_loop)")
+    ap.add_argument("--duration-s", type=float, help="(default 60; --quick 25)")
     ap.add_argument("--settle-s", type=float, default=10.0, help="seconds after the first epoch left out of the statistics")
     ap.add_argument("--quick", action="store_true",
-                    help="1 seed, 25 s, hospital_loop only (smoke test; replaces --seeds, --duration-s and --nets)")
+                    help="1 seed, 25 s, hospital_loop only (smoke test; the options above that are given still apply)")
     args = ap.parse_args(argv)
-    if args.quick:
-        args.seeds, args.duration_s, args.nets = args.seeds[:1], 25.0, ["hospital_loop"]
+    chosen = {"seeds": [1], "duration_s": 25.0, "nets": ["hospital_loop"]} if args.quick else \
+        {"seeds": [1, 2, 3], "duration_s": 60.0, "nets": list(NETS)}
+    for key, value in chosen.items():
+        if getattr(args, key) is None:
+            setattr(args, key, value)
     if not 0.0 <= args.settle_s < args.duration_s:
         ap.error(f"--settle-s must be in [0, duration) = [0, {args.duration_s:g}), got {args.settle_s:g}")
     return args

@@ -71,3 +71,19 @@ def test_covariance_analysis_quick(tmp_path):
     for name in ("sigma_vs_vehicles.png", "gnss_outage.png"):
         assert_png(tmp_path / name)
     assert "| vehicles | lanes | GPS along |" in (tmp_path / "covariance_vs_vehicles.md").read_text()
+
+
+@pytest.mark.parametrize(("script", "given", "key", "expect"), [
+    ("covariance_analysis", [], "vehicles", [2, 3]),
+    ("covariance_analysis", ["--vehicles", "4", "5"], "vehicles", [4, 5]),
+    ("covariance_analysis", ["--duration-s", "40"], "duration_s", 40.0),
+    ("covariance_analysis", ["--vehicles-3lanes"], "vehicles_3lanes", []),
+    ("paper_sensor_combinations", [], "seeds", [1]),
+    ("paper_sensor_combinations", ["--seeds", "4", "5"], "seeds", [4, 5]),
+    ("paper_sensor_combinations", ["--nets", "open_highway"], "nets", ["open_highway"]),
+])
+def test_quick_fills_only_the_options_not_given(script, given, key, expect):
+    """--quick chooses the smoke-test size of what the command line leaves open; an option the
+    user gives is kept (before, --quick replaced it silently)."""
+    args = load_experiment(script).parse_args(["--out", "x", "--quick", *given])
+    assert getattr(args, key) == expect
