@@ -12,7 +12,7 @@ import sys
 from pathlib import Path
 
 from v2v import __version__
-from v2v.errors import EXIT_USER_ERROR, UserError
+from v2v.errors import EXIT_USER_ERROR, UserError, interrupt_behind
 
 
 class _Parser(argparse.ArgumentParser):
@@ -259,22 +259,56 @@ def main(argv: list[str] | None = None) -> int:
 
     parser = build_parser()
     args = parser.parse_args(argv)
+    from v2v.io.atomic import PUBLISHED
+
+    published_before = len(PUBLISHED)
     in_main = threading.current_thread() is threading.main_thread()
     old_sigterm = signal.signal(signal.SIGTERM, _raise_terminated) if in_main else None
     try:
-        return _dispatch(args)
+        try:
+            return _dispatch(args)
+        except Exception as exc:  # a signal inside a numba kernel comes out as its SystemError
+            interrupt = interrupt_behind(exc)
+            if interrupt is None:
+                raise
+            raise interrupt from None
     except UserError as exc:
         print(f"v2v: error: {exc.one_line()}", file=sys.stderr)
         return EXIT_USER_ERROR
-    except _Terminated:
-        print("v2v: terminated (SIGTERM); no partial run folder was kept", file=sys.stderr)
-        return 128 + signal.SIGTERM
-    except KeyboardInterrupt:
-        print("v2v: interrupted; no partial run folder was kept", file=sys.stderr)
-        return 130
+    except KeyboardInterrupt as exc:
+        what = "terminated (SIGTERM)" if isinstance(exc, _Terminated) else "interrupted"
+        done = _completed_run_folder(args, published_before)
+        if done is not None:  # the signal came after the run's folder was whole: the run is done
+            print(f"v2v: {what} after the run finished; its folder {done} is complete", file=sys.stderr)
+            return 0
+        print(f"v2v: {what}; no partial run folder was kept", file=sys.stderr)
+        return 128 + signal.SIGTERM if isinstance(exc, _Terminated) else 130
     finally:
         if in_main:
             signal.signal(signal.SIGTERM, old_sigterm)
+
+
+def _completed_run_folder(args: argparse.Namespace, since: int) -> Path | None:
+    """The run folder ``v2v run`` / ``demo`` completed in this call, if it did (an interrupt
+    that lands while the summary is printed, or as the process ends, loses nothing)."""
+    from v2v.io.atomic import PUBLISHED
+
+    out = getattr(args, "out", None)
+    if args.cmd not in ("run", "demo") or out is None:
+        return None
+    return out if Path(out).resolve() in PUBLISHED[since:] else None
+
+
+def console_main() -> int:
+    """The ``v2v`` command's entry point: :func:`main`, after which Ctrl-C and SIGTERM are
+    ignored, so that a signal arriving while the finished process shuts down (libsumo's and
+    rerun's teardown) cannot turn a complete run into a failed exit status."""
+    import signal
+
+    rc = main()
+    signal.signal(signal.SIGINT, signal.SIG_IGN)
+    signal.signal(signal.SIGTERM, signal.SIG_IGN)
+    return rc
 
 
 def _dispatch(args: argparse.Namespace) -> int:

@@ -54,6 +54,22 @@ def check_positive(value: float, option: str) -> None:
         raise UserError(f"{value!r} is not a positive number", field=option, fix=f"give {option} > 0")
 
 
+def interrupt_behind(exc: BaseException) -> KeyboardInterrupt | None:
+    """The Ctrl-C (or SIGTERM raised as one) that ``exc`` was raised while handling, if any.
+
+    A signal that arrives while a numba kernel runs surfaces as its dispatcher's
+    ``SystemError(... returned a result with an exception set)`` whose context is the
+    :class:`KeyboardInterrupt`: the command lines treat that as the interrupt it is."""
+    seen: set[int] = set()
+    e: BaseException | None = exc
+    while e is not None and id(e) not in seen:
+        if isinstance(e, KeyboardInterrupt):
+            return e
+        seen.add(id(e))
+        e = e.__cause__ or e.__context__
+    return None
+
+
 def script_main(main: Callable[[], int | None], prog: str) -> int:
     """Run a script's ``main()`` as ``v2v`` runs a command (the experiments' ``__main__``): a
     :class:`UserError` is one line on stderr, ``<prog>: error: <field>: ... -- fix: ...``, and
@@ -69,6 +85,12 @@ def script_main(main: Callable[[], int | None], prog: str) -> int:
         print(f"{prog}: error: {exc.one_line()}", file=sys.stderr)
         return EXIT_USER_ERROR
     except KeyboardInterrupt:
+        discard_empty_made_folders()
+        print(f"{prog}: interrupted", file=sys.stderr)
+        return 130
+    except Exception as exc:
+        if interrupt_behind(exc) is None:
+            raise
         discard_empty_made_folders()
         print(f"{prog}: interrupted", file=sys.stderr)
         return 130

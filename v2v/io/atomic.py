@@ -164,6 +164,11 @@ def check_run_target(final: Path, *, what: str = "--out") -> None:
                         field=what, fix="give a new folder, or move those out of it first")
 
 
+# the run folders this process has completed (so that an interrupt that comes after a run's
+# folder is whole is not reported as a run lost)
+PUBLISHED: list[Path] = []
+
+
 class RunFolder:
     """A run's output folder, built under a hidden temporary name and renamed when complete.
 
@@ -206,6 +211,8 @@ class RunFolder:
             shutil.rmtree(old, ignore_errors=True)
             os.replace(self.final, old)
             os.replace(self.staging, self.final)
+            PUBLISHED.append(self.final)
             shutil.rmtree(old, ignore_errors=True)
         else:
             os.replace(self.staging, self.final)
+            PUBLISHED.append(self.final)
