@@ -105,8 +105,9 @@ def epoch_errors(x, P, ipos, ivel, ecef, lead_ecef, rot, vel_enu, lead_vel_enu, 
     lead, ``rot @ (ecef_k - lead_ecef)``, as :func:`v2v.frames.ecef_to_enu`), the estimate
     ``x[ipos[k]:+3]``, true and estimated relative velocity, the error in the lead's frame
     (:func:`lead_frame_errors`), the 1-sigma in that frame (:func:`lead_frame_sigmas`), the
-    ENU covariance entries ee, en, nn, and the position NEES ``e^T C^-1 e`` (:func:`nees`; NaN
-    where ``ready[k]`` is false). The same formulas as those functions, summed in their
+    ENU covariance entries ee, en, nn, and the position NEES ``e^T C^-1 e`` (:func:`nees`).
+    Where ``ready[k]`` is false (the vehicle is not initialized) only the truth is given: the
+    estimate, its errors, sigmas, covariance and NEES are NaN. The same formulas as those functions, summed in their
     order; results agree with the numpy versions to a few ulps (BLAS may fuse multiply-adds).
     ``sin_az``, ``cos_az``: the lead azimuth's sine and cosine (numpy's, as the frame helpers use).
     """
@@ -139,7 +140,14 @@ def epoch_errors(x, P, ipos, ivel, ecef, lead_ecef, rot, vel_enu, lead_vel_enu, 
         out[k, 18] = c[0, 0]
         out[k, 19] = c[0, 1]
         out[k, 20] = c[1, 1]
-        out[k, 21] = _nees3(c, e) if ready[k] else np.nan
+        if ready[k]:
+            out[k, 21] = _nees3(c, e)
+        else:  # no estimate yet: its state is the filter's placeholder, not a number to score
+            for i in range(3):
+                out[k, 3 + i] = np.nan
+                out[k, 9 + i] = np.nan
+            for i in range(12, 22):
+                out[k, i] = np.nan
     return out
 
 
