@@ -441,6 +441,40 @@ def test_a_solution_whose_sensor_measured_nothing_is_noted(tmp_path):
     assert "the run measured no bearings" in res.summary["note"] and "GPS+B had none to use" in res.summary["note"]
 
 
+def test_an_overconfident_filter_is_noted(tmp_path):
+    """The filter told its pseudoranges are good to 5 cm (the world's SD code errors are
+    decimetres to metres): its covariance shrinks far below its errors and the position NEES,
+    chi-square with 3 dof if the filter were right (mean 3), averages in the hundreds. The run
+    says so, worst vehicle first, instead of a quiet table."""
+    sc = load_scenario(None, ["duration_s=10.0", 'solutions=[{name="GPS", sensors=["gnss"], pseudorange_sigma_m=0.05}]'])
+    res = run_scenario(sc, tmp_path / "r", quiet=True, replay=False)
+    nees = {v: s["nees_pos"]["mean"] for v, s in res.summary["statistics"]["GPS"]["vehicles"].items()}
+    assert min(nees.values()) > 30.0
+    worst = max(nees, key=nees.__getitem__)
+    note = res.summary["note"]
+    assert note.startswith("the filter is overconfident: mean position NEES above 30") and f"GPS {worst} (" in note
+    assert note.index(f"GPS {worst} (") < min(note.index(f"GPS {v} (") for v in nees if v != worst)
+
+
+def test_the_overconfidence_note_names_the_causes_the_run_knows():
+    """The note names the UWB solutions without bias states among those listed (MSSI ranges
+    carry decimetre biases the default filter treats as white noise: a 20-car open_highway run's
+    farthest car reached mean NEES ~50) and the NLOS-only share of the GNSS signals when it is
+    10 % or more."""
+    from v2v.run import _overconfident, _overconfident_note
+
+    sc = load_scenario(None, ['solutions=[{name="U", sensors=["gnss","uwb"]}, {name="Us", sensors=["gnss","uwb"], '
+                              'uwb_error_states=true}, {name="G", sensors=["gnss"]}]'])
+    stats = {sol: {"vehicles": {"c1.1": {"nees_pos": {"n": 10, "mean": m}}}} for sol, m in (("U", 51.0), ("Us", 40.0), ("G", 2.9))}
+    over = _overconfident(stats)
+    assert over == [(51.0, "U", "c1.1"), (40.0, "Us", "c1.1")]
+    note = _overconfident_note(sc, over, {"nlos_fraction": 0.65})
+    assert "for U c1.1 (51), Us c1.1 (40):" in note
+    assert "(U leaves the UWB ranges' biases (decimetres) unestimated: uwb_error_states = true models them; " \
+           "65 % of the tracked GNSS signals were NLOS-only)" in note
+    assert "UWB" not in _overconfident_note(sc, [(40.0, "Us", "c1.1")], {"nlos_fraction": 0.05})
+
+
 def test_a_run_that_estimates_has_no_note(short_run):
     assert "note" not in short_run[1]
 

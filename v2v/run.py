@@ -693,8 +693,9 @@ def _run_note(scenario: Scenario, t_end: float, fault_log: Any, sol_stats: dict[
     """summary.json's ``note`` ("" if none), what a user should know about a run that completed:
     it ended early (every cluster vehicle at the end of its route), a fault could not act (it
     starts after the run's end, or changed no measurement), no solution estimated any vehicle
-    (:func:`_why_nothing_estimated`), a solution's UWB or bearing sensor measured nothing, most
-    V2V messages arrived after the filter had passed their time tag."""
+    (:func:`_why_nothing_estimated`), a solution's UWB or bearing sensor measured nothing, a
+    vehicle's filter was badly overconfident (:func:`_overconfident`), most V2V messages arrived
+    after the filter had passed their time tag."""
     from v2v.faults import unreachable_faults
 
     notes = []
@@ -721,11 +722,50 @@ def _run_note(scenario: Scenario, t_end: float, fault_log: Any, sol_stats: dict[
             sols = [sol.name for sol in scenario.solutions if sensor in sol.sensors]
             notes.append(f"the run measured no {'UWB ranges' if sensor == 'uwb' else 'bearings'} ({why}): "
                          f"{', '.join(sols)} had none to use")
+    over = _overconfident(sol_stats)
+    if over:
+        notes.append(_overconfident_note(scenario, over, gnss))
     if exchange and exchange["late"] > 0.5 * (exchange["sent"] - exchange["lost"]):
         notes.append(f"{exchange['late']} of the {exchange['sent'] - exchange['lost']} V2V messages not lost arrived after "
                      f"the filter had passed their time tag and were dropped (exchange.latency_s = "
                      f"{scenario.exchange.latency_s:g} s > exchange.filter_lag_s = {scenario.exchange.lag_s:g} s)")
     return "; ".join(notes)
+
+
+# A vehicle's mean position NEES this many times its expectation (3 degrees of freedom) is
+# noted. Not a statistical test: a run's NEES samples are strongly correlated in time, so the
+# chi-square band of their mean (summary.json's frac_in_band uses each sample's band) would flag
+# ordinary runs; an average of 10x means errors sustained at ~3 sigma per axis.
+NEES_NOTE_FACTOR = 10.0
+
+
+def _overconfident(sol_stats: dict[str, Any]) -> list[tuple[float, str, str]]:
+    """(mean position NEES, solution, vehicle) of the vehicles whose mean NEES is above
+    :data:`NEES_NOTE_FACTOR` times 3, worst first."""
+    over = [(float(v["nees_pos"]["mean"]), sol, veh) for sol, st in sol_stats.items()
+            for veh, v in st.get("vehicles", {}).items()
+            if v.get("nees_pos", {}).get("n", 0) and float(v["nees_pos"]["mean"]) > NEES_NOTE_FACTOR * 3.0]
+    return sorted(over, key=lambda o: -o[0])
+
+
+def _overconfident_note(scenario: Scenario, over: list[tuple[float, str, str]], gnss: dict[str, Any],
+                        listed: int = 3) -> str:
+    """The note on :func:`_overconfident`'s vehicles (``listed`` of them, then how many more),
+    with the likely causes the run can name: UWB solutions without bias states, NLOS-only GNSS."""
+    text = ", ".join(f"{sol} {veh} ({m:.0f})" for m, sol, veh in over[:listed])
+    text += f" and {len(over) - listed} more" if len(over) > listed else ""
+    named = {sol for _, sol, _ in over}
+    hints = []
+    biased = sorted(s.name for s in scenario.solutions if s.name in named and "uwb" in s.sensors and not s.uwb_error_states)
+    if biased:
+        hints.append(f"{', '.join(biased)} leave{'s' if len(biased) == 1 else ''} the UWB ranges' biases (decimetres) "
+                     "unestimated: uwb_error_states = true models them")
+    nlos = gnss.get("nlos_fraction")
+    if nlos is not None and float(nlos) >= 0.1:
+        hints.append(f"{100.0 * float(nlos):.0f} % of the tracked GNSS signals were NLOS-only")
+    return (f"the filter is overconfident: mean position NEES above {NEES_NOTE_FACTOR * 3:g} ({NEES_NOTE_FACTOR:g} "
+            f"times its expectation of 3) for {text}: the errors exceed what it assumes "
+            f"({'; '.join(hints) if hints else 'see the *_sigma_* fields; unmodelled multipath'}); see nees_pos in statistics")
 
 
 def _why_nothing_estimated(scenario: Scenario, sol_stats: dict[str, Any], gnss: dict[str, Any],
