@@ -106,7 +106,7 @@ def test_exact_discretization_is_a_semigroup(tau, sigma, q0):
 
 
 def test_short_step_is_the_white_noise_acceleration_model():
-    """dt << tau: the GM rate is a random walk and Q tends to Pabolleta (2020)'s continuous
+    """dt << tau: the GM rate is a random walk and Q tends to Pabolleta (2021)'s continuous
     white-noise model q [[dt^3/3, dt^2/2], [dt^2/2, dt]] (relative corrections O(dt/tau))."""
     tau, sigma, dt = 2.0, 10.0, 1e-4
     q = 2.0 * sigma**2 / tau

@@ -143,7 +143,7 @@ class SolutionSection(_Model):
     uwb_error_states: StrictBool = False
     # MacGougan (2009) eq. 3.19-3.22: after each UWB update a bias or scale state beyond its
     # known range is pulled onto the bound by a pseudo-measurement (uwb_error_states only).
-    # Bias: +-1.23 m, the worst case of 20 ppm oscillators (IEEE 802.15.4a; thesis 3.4.3);
+    # Bias: +-1.23 m, the worst case of 20 ppm oscillators (IEEE 802.15.4a; thesis section 3.4.2, eq. 3.19-3.22);
     # scale: 0-5000 ppm covers both built-in radios' line-of-sight walk (2300-4700 ppm, 2.11.1).
     uwb_constraints: StrictBool = False
     uwb_bias_bounds_m: tuple[StrictFloat, StrictFloat] = (-1.23, 1.23)

@@ -1393,7 +1393,7 @@ def _horner(c, a):
 
 @njit(**_JIT)
 def gm_block_into(tau, sigma, dt, extra_psd_level0, f, q, i, j):
-    """:func:`v2v.estimation.process.gm_integrated_block` (Pabolleta (2020) eq. 3.6 in closed
+    """:func:`v2v.estimation.process.gm_integrated_block` (Pabolleta (2021) eq. 3.6 in closed
     form) written into ``f[i|j, i|j]``, ``q[i|j, i|j]`` (level ``i``, GM rate ``j``)."""
     qc = 2.0 * math.pow(sigma, 2.0) / tau
     a = dt / tau

@@ -9,7 +9,9 @@ Geometry (Petovello et al. section 3.1, "lead vehicle"): the lead's position is 
 known from its standalone solution (``GnssGeometry.base_ecef_m``); a non-lead vehicle's
 absolute position is ``base + R^T p_v`` with ``p_v`` its relative ENU position and ``R``
 the ECEF->ENU rotation at the base. The base error maps into the baseline only as
-``|d base| * |baseline| / rho`` (paper eq. 7): negligible, so it is not estimated.
+``|d base| * |baseline| / rho`` (the standard base-error rule of Tang (1996), which the paper
+cites; its eq. 7 as printed has a different factor): a few metres of SPP base error on a
+300 m baseline to satellites ~2e7 m away give < 0.1 mm, so it is not estimated.
 The ENU frame is re-centred on the base each GNSS update; its rotation as the lead
 moves (1e-4 rad per km travelled) is not modelled.
 

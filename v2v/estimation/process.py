@@ -37,7 +37,7 @@ tighter (0.2-0.3 deg/sqrt(s), 10-30 deg/s, 3-10 s) settings leave the across-tra
 unchanged, and the tighter ones lag a sustained 16 deg/s turn (azimuth std 1.5-4.3 deg instead
 of 0.38 deg). Averaging the GPS rotation over longer would need a measured yaw rate.
 
-Discretization uses the continuous noise model (Pabolleta (2020) eq. 3.6,
+Discretization uses the continuous noise model (Pabolleta (2021) eq. 3.6,
 ``Q = int_0^dt Phi(t) G Qc G^T Phi(t)^T dt``) evaluated exactly with Van Loan's
 matrix exponential (Van Loan 1978)::
 
@@ -46,7 +46,7 @@ matrix exponential (Van Loan 1978)::
 
 Every 2x2 block here ([p, v] per axis, [clk, drift], [azimuth, rate]) is an integrated
 first-order GM process, whose Van Loan integral has a closed form (:func:`gm_integrated_block`,
-Pabolleta (2020) eq. 3.6 evaluated analytically; Gelb (1974) table 4.4-1 gives the same
+Pabolleta (2021) eq. 3.6 evaluated analytically; Gelb (1974) table 4.4-1 gives the same
 transition matrix). With ``a = dt / tau``, ``e = exp(-a)``, ``q = 2 sigma^2 / tau`` and white
 noise ``q0`` on the level::
 
@@ -83,7 +83,9 @@ F64 = NDArray[np.float64]
 
 @dataclass(frozen=True, kw_only=True)
 class ProcessNoiseConfig:
-    """Process-noise parameters (defaults: Petovello et al. section 3.2).
+    """Process-noise parameters. The relative velocity and clock drift defaults are Petovello
+    et al. section 3.2's; the azimuth, yaw-rate and UWB random walks are v2v's (the azimuth's
+    equals the scenario default, ``solutions.N.azimuth_rw_deg_per_sqrt_s = 2``).
 
     Parameters
     ----------
@@ -108,7 +110,7 @@ class ProcessNoiseConfig:
     drift_tau_s: float = 10.0
     drift_sigma_mps: float = 1000.0
     clock_bias_psd_m2ps: float = 0.0
-    azimuth_rw_rad_per_sqrt_s: float = np.radians(5.0)
+    azimuth_rw_rad_per_sqrt_s: float = np.radians(2.0)
     yaw_rate_sigma_rps: float = np.radians(30.0)
     yaw_rate_tau_s: float = 1.0
     uwb_bias_rw_m_per_sqrt_s: float = 0.01
@@ -178,7 +180,7 @@ def gm_integrated_block(tau_s: float, sigma: float, dt_s: float, extra_psd_level
 
     ``d/dt level = rate + w0``, ``d/dt rate = -rate / tau + w``, ``E[w^2] = q = 2 sigma^2 / tau``,
     ``E[w0^2] = extra_psd_level0``: the relative-velocity and clock-drift models of Petovello
-    et al. section 3.2 (and the azimuth-rate model of this module). ``Q`` is Pabolleta (2020)
+    et al. section 3.2 (and the azimuth-rate model of this module). ``Q`` is Pabolleta (2021)
     eq. 3.6, ``Q = int_0^dt Phi(s) G Qc G^T Phi(s)^T ds``, with ``Phi(s) = [[1, tau (1 - e_s)],
     [0, e_s]]``, ``e_s = exp(-s / tau)`` integrated term by term (the integral Van Loan (1978)
     computes with the matrix exponential, :func:`van_loan`)::
