@@ -64,7 +64,12 @@ Fault handling (issue 8):
 * Divergence: the last ``divergence_window`` SD-pseudorange tests of each vehicle are
   kept; when more than ``divergence_reject_fraction`` of a full window was rejected
   (under H0 the rejections are Binomial(N, alpha): P(> N/2 of 50 at alpha = 0.001) ~
-  1e-60), or the position standard deviation exceeds ``divergence_position_sigma_m``, the
+  1e-60), or the window's mean NIS (each test's capped at the gate, k^2) exceeds
+  ``divergence_mean_nis`` (under H0 N times it is chi-square(N): P(mean of 50 > 5) ~ 2e-28;
+  a state 50 m off with a metre-level covariance keeps most tests inside the gate, the SD
+  clock absorbing their common part, so the rejected fraction alone missed it in ~9 of 10
+  geometries, while its capped mean NIS is ~7), or the position standard deviation exceeds
+  ``divergence_position_sigma_m``, the
   vehicle's block is reset to the uninitialized prior (counted ``divergence_reset``) and
   re-initialized by the snapshot least squares of its next GNSS epoch. The window's
   mean NIS is available as :meth:`ClusterFilterBase.window_mean_nis` for diagnostics.
@@ -230,6 +235,7 @@ class FilterConfig:
     clock_reset_sigma_m: float = 100.0
     divergence_window: int = 50
     divergence_reject_fraction: float = 0.5
+    divergence_mean_nis: float = 5.0
     divergence_position_sigma_m: float = 1000.0
     phase: PhaseConfig | None = None
 
@@ -247,6 +253,9 @@ class FilterConfig:
         if isinstance(mask, bool) or not isinstance(mask, (int, float)) or not (math.isfinite(mask) and mask >= 0.0):
             raise UserError(f"must be a finite C/N0 >= 0 dB-Hz, got {self.gnss_cn0_mask_dbhz!r}",
                             field="filter.gnss_cn0_mask_dbhz", fix="e.g. 0 (no mask) or 41 (no echoes)")
+        if not self.divergence_mean_nis > 1.0:
+            raise UserError(f"must exceed 1 (the NIS expectation), got {self.divergence_mean_nis!r}",
+                            field="filter.divergence_mean_nis", fix="e.g. 5 (use inf to test the rejected fraction only)")
         if self.divergence_window < 1 or not 0.0 < self.divergence_reject_fraction <= 1.0:
             raise UserError("needs window >= 1 and 0 < reject fraction <= 1", field="filter.divergence_window")
 
@@ -450,24 +459,34 @@ def cond_sym(a: F64) -> float:
 
 class NisWindow:
     """The last ``size`` SD-pseudorange innovation tests of one vehicle, ``(NIS, accepted)``
-    oldest first (:attr:`tests`), and how many of them were rejected (:attr:`rejected`, kept
-    up to date as tests enter and leave: the divergence test reads it instead of counting
-    the window every epoch)."""
+    oldest first (:attr:`tests`), how many of them were rejected (:attr:`rejected`) and the
+    sum of their NIS, each capped at ``cap`` (:attr:`nis_sum`), both kept up to date as tests
+    enter and leave: the divergence test reads them instead of going through the window
+    every epoch. The filter's cap is its gate, k^2: a rejected test (a blunder of any size, a
+    1 ms clock jump's NIS of ~1e9) counts as the largest NIS a test can pass with, so a
+    few blunders cannot make the mean, and the sum's additions and subtractions stay among
+    numbers of one size."""
 
-    __slots__ = ("tests", "rejected")
+    __slots__ = ("tests", "rejected", "nis_sum", "cap")
 
-    def __init__(self, size: int) -> None:
+    def __init__(self, size: int, cap: float = math.inf) -> None:
         self.tests: deque[tuple[float, bool]] = deque(maxlen=size)
         self.rejected = 0
+        self.nis_sum = 0.0
+        self.cap = cap
 
     def __len__(self) -> int:
         return len(self.tests)
 
     def add(self, nis: float, accepted: bool) -> None:
         t = self.tests
-        if len(t) == t.maxlen and not t[0][1]:  # the oldest, a rejection, leaves
-            self.rejected -= 1
+        if len(t) == t.maxlen:  # the oldest leaves
+            old, ok = t[0]
+            self.nis_sum -= self._capped(old)
+            if not ok:
+                self.rejected -= 1
         t.append((nis, accepted))
+        self.nis_sum += self._capped(nis)
         if not accepted:
             self.rejected += 1
 
@@ -475,9 +494,21 @@ class NisWindow:
         """Accepted tests with these NIS values, in order."""
         t = self.tests
         leaving = len(t) + len(nis) - (t.maxlen or 0)  # the oldest tests pushed out
-        if leaving > 0 and self.rejected:
-            self.rejected -= sum(1 for _, ok in itertools.islice(t, min(leaving, len(t))) if not ok)
+        if leaving > 0:
+            for old, ok in itertools.islice(t, min(leaving, len(t))):
+                self.nis_sum -= self._capped(old)
+                if not ok:
+                    self.rejected -= 1
+        kept = nis[-t.maxlen:] if t.maxlen is not None and len(nis) > t.maxlen else nis
+        self.nis_sum += sum(map(self._capped, kept))
         t.extend(zip(nis, repeat(True)))
+
+    def _capped(self, nis: float) -> float:
+        return nis if nis <= self.cap else self.cap  # (NaN: not <=, capped too)
+
+    def mean_nis(self) -> float:
+        """Mean of the window's capped NIS."""
+        return self.nis_sum / len(self.tests) if self.tests else float("nan")
 
 
 class ClusterFilterBase(ABC):
@@ -954,7 +985,7 @@ class ClusterFilterBase(ABC):
     def _window(self, v: str) -> NisWindow:
         w = self._nis_window.get(v)
         if w is None:
-            w = self._nis_window[v] = NisWindow(self.config.divergence_window)
+            w = self._nis_window[v] = NisWindow(self.config.divergence_window, self._k**2)
         return w
 
     def _record_test(self, v: str, info: UpdateInfo) -> None:
@@ -989,7 +1020,8 @@ class ClusterFilterBase(ABC):
         w = self._nis_window.get(v)
         if w is None or len(w.tests) < self.config.divergence_window:
             return False
-        return w.rejected > self.config.divergence_reject_fraction * len(w.tests)
+        n = len(w.tests)
+        return w.rejected > self.config.divergence_reject_fraction * n or w.nis_sum > self.config.divergence_mean_nis * n
 
     def _reset_vehicle(self, v: str) -> None:
         """Back to the uninitialized prior; the next GNSS snapshot re-initializes the block."""
