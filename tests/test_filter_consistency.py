@@ -182,23 +182,35 @@ def test_uwb_and_bearings_carry_the_horizontal_solution_through_30_s_without_gns
     """Petovello et al. section 3.3: with three vehicles making UWB and bearing
     measurements the horizontal relative solution is determined without GNSS. GNSS for
     10 s, then none for 30 s; height aiding (relative up = 0 +- 1 m) replaces the vertical
-    information GNSS gave. Horizontal sigma must stay bounded (<= 0.5 m; measured ~0.3 m,
-    vs. 4-5 m at GNSS initialization and growing without bound if the measurements were
-    not used) and the horizontal error within 3 sigma at every epoch of the outage."""
+    information GNSS gave. In 5 seeds: horizontal sigma must stay bounded (<= 0.5 m at every
+    epoch; measured ~0.3 m, vs. 4-5 m at GNSS initialization and growing without bound if
+    the measurements were not used), and the horizontal errors must be as large as those
+    sigmas say: each run's mean horizontal NEES (chi-square(2) per epoch and vehicle if the
+    filter is right) over the outage is one number with at most a single sample's variance
+    (a mean of identically distributed, correlated samples varies no more than one of them),
+    so the average of the 5 runs' means must lie in the 99.9 % band of chi-square(10)/5.
+    (The check this replaces, |error| <= 3 sigma at each of 1204 samples of one seed, fails
+    in 82 of 100 seeds with the filter consistent: pooled, 0.15 % of samples exceed 3 sigma
+    against 0.27 % expected.)"""
     cfg = FilterConfig(height_aiding_sigma_m=1.0)
     lay = StateLayout.build(lead="lead", vehicles=("v1", "v2"))
     scn = SimScenario(n_vehicles=3, duration_s=40.0, gnss_outage_s=(10.0, 41.0),
                       bearing_vehicles=("lead", "v1", "v2"))
-    ekf = ClusterEkf(lay, cfg)
-    n_outage = 0
-    for ep, _ in run_filter(ekf, simulate(scn, cfg, np.random.default_rng(0)), scn.dt_s):
-        if ep.gnss is not None:
-            continue
-        n_outage += 1
-        for v in lay.vehicles:
-            s = lay.position(v)
-            sd = np.sqrt(np.diag(ekf.P[s, s]))[:2]
-            err = (ekf.x[s] - ep.rel_state[v][:3])[:2]
-            assert np.all(sd <= 0.5), (ep.t_s, v, sd)
-            assert np.all(np.abs(err) <= 3 * sd), (ep.t_s, v, err, sd)
-    assert n_outage == 301  # t = 10.0 ... 40.0 s at 10 Hz
+    run_means = []
+    for seed in range(5):
+        ekf = ClusterEkf(lay, cfg)
+        n_outage, nees = 0, []
+        for ep, _ in run_filter(ekf, simulate(scn, cfg, np.random.default_rng(seed)), scn.dt_s):
+            if ep.gnss is not None:
+                continue
+            n_outage += 1
+            for v in lay.vehicles:
+                s = lay.position(v)
+                c = ekf.P[s, s][:2, :2]
+                err = (ekf.x[s] - ep.rel_state[v][:3])[:2]
+                assert np.all(np.sqrt(np.diag(c)) <= 0.5), (seed, ep.t_s, v, np.sqrt(np.diag(c)))
+                nees.append(float(err @ np.linalg.solve(c, err)))
+        assert n_outage == 301  # t = 10.0 ... 40.0 s at 10 Hz
+        run_means.append(np.mean(nees))
+    lo, hi = chi2.ppf([0.0005, 0.9995], 2 * len(run_means)) / len(run_means)
+    assert lo <= np.mean(run_means) <= hi, (run_means, lo, hi)
