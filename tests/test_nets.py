@@ -16,6 +16,7 @@ from pathlib import Path
 
 import numpy as np
 import pytest
+import sumolib
 from shapely.geometry import LineString, Point, Polygon
 
 from v2v import nets
@@ -23,7 +24,6 @@ from v2v.errors import UserError
 from v2v.frames import GeoReference, geodetic_to_ecef
 
 pytestmark = pytest.mark.sumo
-sumolib = pytest.importorskip("sumolib")
 
 TINY_OSM = Path(__file__).parent / "data" / "tiny.osm"
 # SUMO's default passenger speedFactor is N(1, 0.1): 1.2 is its 2-sigma upper value.

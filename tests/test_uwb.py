@@ -359,7 +359,7 @@ def test_nlos_detection_probability_binomial():
 
 def _occlusion_world(with_wall: bool):
     """v2v.world occlusion with (optionally) a 20 m tall building whose south wall is y = 10 m."""
-    occ = pytest.importorskip("v2v.world.occlusion")
+    import v2v.world.occlusion as occ
     from v2v.world.buildings import Building, World
 
     bld = (
@@ -418,7 +418,7 @@ def test_vehicle_box_lies_along_the_grid_azimuth():
     from y = -11.5 to -8.5 m runs inside it. Turned by the true azimuth instead, the box's
     right side would be at x = 1.25 / cos(gamma) + y tan(gamma) <= 0.90 m there (rear swung
     12 gamma = 0.49 m): the link would pass. Hand geometry, independent of the code."""
-    occ = pytest.importorskip("v2v.world.occlusion")
+    import v2v.world.occlusion as occ
     from v2v.world.buildings import World
 
     gamma = 0.041
