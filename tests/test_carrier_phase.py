@@ -132,16 +132,28 @@ def test_sd_phase_row_matches_finite_differences_and_wavelength():
 
 
 # ----------------------------------------------------------------------------- filter
-def test_open_sky_fixes_the_true_integers_with_centimetre_errors():
+@pytest.mark.parametrize("seed", [1, 7])
+def test_open_sky_fixes_the_true_integers_with_centimetre_errors(seed):
     """8 satellites, 3 cars, 60 s. After the 5 s minimum lock every vehicle must be fixed
     (bootstrapped success 0.999, ratio 3) with no wrong integer; a consistent fixed solution
     has RMS error ~ its sigma (1-2 cm): 2x allows for ~60 effectively independent samples
-    (RMS relative scatter ~ 1/sqrt(2*60) = 9 %) and then some."""
+    (RMS relative scatter ~ 1/sqrt(2*60) = 9 %) and then some.
+
+    Seed 7 holds the event that made 40 of 100 seeds fail "fixed after 10 s": the SD clock
+    comes from each epoch's code (~0.25 m; the loose clock model forgets the phase-derived
+    one in a 0.1 s prediction), so every phase innovation carries the code clock's error.
+    At 10.5 s v1's was 3.8 sigma: all 8 phases failed their gate together and the "most
+    phases rejected" rule dropped v1's correct integers (float for 5 s). A common mode is a
+    clock offset, never a wrong integer: it is tested first (phase_clock_common_mode, as the
+    pseudoranges' clock-jump test) and the phases are then used; no reset."""
     scn = SimScenario(n_vehicles=3, duration_s=60.0, uwb=False, bearing_vehicles=(), steady_clock=True)
-    ekf, rows = _run(scn)
+    ekf, rows = _run(scn, seed=seed)
     late = [r for r in rows if r[0] >= 10.0]
     assert all(r[2] == "fixed" for r in late)
     assert not any(r[3] for r in rows if r[3] is not None)
+    assert ekf.counters.get("ambiguity_reset", 0) == 0
+    if seed == 7:
+        assert ekf.counters.get("phase_clock_common_mode", 0) >= 1
     err = np.array([r[4] for r in late])
     sig = np.array([r[5] for r in late])
     rms_h = np.sqrt(np.mean(err[:, :2] ** 2, axis=0))

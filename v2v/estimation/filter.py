@@ -809,6 +809,8 @@ class ClusterFilterBase(ABC):
         r_var = pc.sd_phase_var_m2
         for v, (ep, mine) in plan.items():
             order, flagged = self._phase_order(v, ep, lead_ep, geo, mine, lead_ok, r_var)
+            self._phase_common_mode(v, ep, lead_ep, geo, mine, lead_ok, r_var,
+                                    [p for p in order if (v, p) not in new_now and p not in flagged])
             results = []
             for p in order:
                 if (v, p) in new_now:
@@ -881,6 +883,48 @@ class ClusterFilterBase(ABC):
                 self._count("phase_screened")
         rest = [p for p in by_el if p not in held]
         return held + rest, flagged
+
+    def _phase_common_mode(self, v: str, ep: GnssEpoch, lead_ep: GnssEpoch, geo: GnssGeometry,
+                           mine: dict[int, int], lead_ok: dict[int, int], r_var: float, prns: list[int]) -> bool:
+        """Common-mode test of ``v``'s SD phase innovations before their sequential tests.
+
+        The SD clock is re-estimated from this epoch's code (the loose clock model forgets the
+        phase-derived clock in one 0.1 s prediction: sigma ~8 m), so every phase innovation
+        carries the code clock's error (~0.25 m with 8 satellites) and they are ~100 %
+        correlated until the first phase is used. The first phase's gate is then a test of the
+        *code* clock: it fails at rate alpha per vehicle-epoch under H0, every other phase is
+        rejected with it, and the "most phases rejected" rule reads one 3.3-sigma code event
+        as a wrong fix. A common mode cannot come from a wrong DD integer (it is absorbed by
+        the SD clock). So, as :meth:`_clock_jump` for pseudoranges: when more than half fail the
+        gate with one sign and a majority pass after removing the median ``m``, the clock's
+        variance is widened by ``m^2`` (additive, like process noise; correlations kept) and the
+        phases then go through the normal sequential tests (the first sets the clock, the
+        others are tested at millimetre S, so a DD fault is still caught). Counted
+        ``phase_clock_common_mode``."""
+        if len(prns) < 3:
+            return False
+        lay = self.layout
+        x = self._get_x()
+        rows = [sd_phase_row(x, lay, geo, v, p, ep.sv_pos_ecef_m[mine[p]], lead_ep.sv_pos_ecef_m[lead_ok[p]])
+                for p in prns]
+        n = len(rows)
+        idx = np.r_[rows[0].idx[:4], [int(r.idx[4]) for r in rows]].astype(np.int64)  # position, clock, ambiguities
+        val = np.zeros((n, 4 + n))
+        for k, r in enumerate(rows):
+            val[k, :4] = r.val[:4]
+            val[k, 4 + k] = r.val[4]
+        h = np.array([r.h for r in rows])
+        z = np.array([LAMBDA_L1_M * (float(ep.carrier_cycles[mine[p]]) - float(lead_ep.carrier_cycles[lead_ok[p]]))
+                      for p in prns])
+        jump, m = kernels.clock_jump_test(self._get_P(), idx, h, val, z, float(r_var), self._k)
+        if not jump:
+            return False
+        i = lay.clock(v)
+        x2, P2 = self._get_x().copy(), self._get_P().copy()
+        P2[i, i] += float(m) ** 2
+        self._replace(x2, P2)
+        self._count("phase_clock_common_mode")
+        return True
 
     def _resolve_ambiguities(self, plan: dict[str, tuple[GnssEpoch, dict[int, int]]]) -> list[UpdateInfo]:
         """LAMBDA partial fixing per vehicle and fix-and-hold (:func:`v2v.estimation.phase.resolve_vehicle`)."""
