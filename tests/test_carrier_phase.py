@@ -177,10 +177,11 @@ def test_slips_on_one_and_on_all_satellites_are_detected_and_refixed_without_wro
         after = [r for r in rows if r[1] == v and r[0] >= t_slip + lock + 0.5]
         assert after and all(r[2] == "fixed" for r in after)
     # v2 lost every ambiguity but not its position: between the slip and the re-fix the
-    # float solution stays consistent (|error| < 4 sigma per axis: a Gaussian exceeds that
-    # with probability 6e-5 per sample) and decimetric (the code alone would give ~0.5 m)
+    # float solution stays consistent (|error| < 5 sigma per axis: a Gaussian exceeds that
+    # with probability 5.7e-7 per sample, <= 1e-4 for the gap's ~170 samples by the union
+    # bound) and decimetric (the code alone would give ~0.5 m)
     gap = [r for r in rows if r[1] == "v2" and 35.0 <= r[0] < 35.0 + lock + 0.5]
-    assert all(np.all(np.abs(r[4]) < 4.0 * r[5]) for r in gap)
+    assert all(np.all(np.abs(r[4]) < 5.0 * r[5]) for r in gap)
     assert max(float(np.hypot(*r[4][:2])) for r in gap) < 0.3
 
 
@@ -203,8 +204,11 @@ def test_silent_slip_is_rejected_then_reset_without_a_lasting_wrong_fix():
     assert ekf2.counters["phase_screened"] >= n_reset - 1
     v1 = [r for r in rows2 if r[1] == "v1"]
     assert sum(bool(r[3]) for r in v1) <= n_reset - 1
-    # |error| < 4 sigma per axis at every fixed epoch (Gaussian: 6e-5 per sample)
-    assert all(np.all(np.abs(r[4]) < 4.0 * r[5]) for r in v1 if r[0] >= 10.0)
+    # |error| < 5 sigma per axis at every epoch from 10 s: a Gaussian exceeds that with
+    # probability 5.7e-7 per sample, so by the union bound <= 5e-4 for the run's ~900 samples
+    # (at 4 sigma it was ~5 %: 7 of 200 seeds failed with the filter consistent); a slip that
+    # reached the state would be 0.19 m, ~10-20 sigma of a fixed solution
+    assert all(np.all(np.abs(r[4]) < 5.0 * r[5]) for r in v1 if r[0] >= 10.0)
     assert all(r[2] == "fixed" and not r[3] for r in v1 if r[0] >= 30.0)
 
 
