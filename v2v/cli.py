@@ -12,7 +12,7 @@ import sys
 from pathlib import Path
 
 from v2v import __version__
-from v2v.errors import EXIT_USER_ERROR, UserError, interrupt_behind
+from v2v.errors import EXIT_USER_ERROR, UserError, interrupts_unwrapped
 
 
 class _Parser(argparse.ArgumentParser):
@@ -265,13 +265,8 @@ def main(argv: list[str] | None = None) -> int:
     in_main = threading.current_thread() is threading.main_thread()
     old_sigterm = signal.signal(signal.SIGTERM, _raise_terminated) if in_main else None
     try:
-        try:
+        with interrupts_unwrapped():  # (a signal inside a numba kernel comes out as its SystemError)
             return _dispatch(args)
-        except Exception as exc:  # a signal inside a numba kernel comes out as its SystemError
-            interrupt = interrupt_behind(exc)
-            if interrupt is None:
-                raise
-            raise interrupt from None
     except UserError as exc:
         print(f"v2v: error: {exc.one_line()}", file=sys.stderr)
         return EXIT_USER_ERROR

@@ -9,7 +9,8 @@ from __future__ import annotations
 
 import math
 import sys
-from collections.abc import Callable
+from collections.abc import Callable, Iterator
+from contextlib import contextmanager
 from pathlib import Path
 
 
@@ -70,6 +71,19 @@ def interrupt_behind(exc: BaseException) -> KeyboardInterrupt | None:
     return None
 
 
+@contextmanager
+def interrupts_unwrapped() -> Iterator[None]:
+    """Re-raise an exception that :func:`interrupt_behind` finds a Ctrl-C (or SIGTERM) behind
+    as that interrupt, so the command lines' ``except KeyboardInterrupt`` sees it."""
+    try:
+        yield
+    except Exception as exc:
+        interrupt = interrupt_behind(exc)
+        if interrupt is None:
+            raise
+        raise interrupt from None
+
+
 def script_main(main: Callable[[], int | None], prog: str) -> int:
     """Run a script's ``main()`` as ``v2v`` runs a command (the experiments' ``__main__``): a
     :class:`UserError` is one line on stderr, ``<prog>: error: <field>: ... -- fix: ...``, and
@@ -79,18 +93,13 @@ def script_main(main: Callable[[], int | None], prog: str) -> int:
     from v2v.io.atomic import discard_empty_made_folders
 
     try:
-        return int(main() or 0)
+        with interrupts_unwrapped():
+            return int(main() or 0)
     except UserError as exc:
         discard_empty_made_folders()
         print(f"{prog}: error: {exc.one_line()}", file=sys.stderr)
         return EXIT_USER_ERROR
     except KeyboardInterrupt:
-        discard_empty_made_folders()
-        print(f"{prog}: interrupted", file=sys.stderr)
-        return 130
-    except Exception as exc:
-        if interrupt_behind(exc) is None:
-            raise
         discard_empty_made_folders()
         print(f"{prog}: interrupted", file=sys.stderr)
         return 130

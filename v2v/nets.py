@@ -52,6 +52,7 @@ from typing import Any, NamedTuple
 
 from v2v.errors import UserError, not_a_file
 from v2v.frames import GeoReference
+from v2v.io.atomic import first_missing
 
 NETS_DIR = Path(__file__).resolve().parents[1] / "sumo_nets"
 SHIPPED_NETS = ("open_highway", "residential", "urban_canyon", "hospital_loop")
@@ -540,7 +541,7 @@ def import_osm(osm_path: str | os.PathLike, name: str, out_root: str | os.PathLi
     out_dir = (NETS_DIR if out_root is None else Path(out_root)) / name
     # the outermost folder this import creates (out_dir or a parent, e.g. a new --out): a failed
     # import removes it, so it leaves no empty folder behind
-    created = next((d for d in reversed((out_dir, *out_dir.parents)) if not d.exists()), None)
+    created = first_missing(out_dir)
     out_dir.mkdir(parents=True, exist_ok=True)
     net_path = out_dir / f"{name}.net.xml"
     poly_path = out_dir / f"{name}.poly.xml"

@@ -506,10 +506,6 @@ class NisWindow:
     def _capped(self, nis: float) -> float:
         return nis if nis <= self.cap else self.cap  # (NaN: not <=, capped too)
 
-    def mean_nis(self) -> float:
-        """Mean of the window's capped NIS."""
-        return self.nis_sum / len(self.tests) if self.tests else float("nan")
-
 
 class ClusterFilterBase(ABC):
     """Sequencing, gating and initialization shared by both engines.

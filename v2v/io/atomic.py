@@ -90,7 +90,7 @@ def make_folder(out: Path, *, what: str = "--out") -> None:
     from v2v.errors import UserError
 
     out = Path(out)
-    first_new = _first_missing(out)
+    first_new = first_missing(out)
     try:
         out.mkdir(parents=True, exist_ok=True)
     except OSError as exc:
@@ -109,7 +109,7 @@ def discard_empty_made_folders() -> None:
         _remove_if_no_files(_MADE_FOLDERS.pop())
 
 
-def _first_missing(path: Path) -> Path | None:
+def first_missing(path: Path) -> Path | None:
     """The topmost of ``path`` and its parents that does not exist (what ``mkdir(parents=True)``
     of ``path`` would create first), or None if ``path`` exists."""
     return next((p for p in reversed([path, *path.parents]) if not p.exists() and not p.is_symlink()), None)
@@ -189,7 +189,7 @@ class RunFolder:
         from v2v.errors import UserError
 
         check_run_target(self.final, what=self.what)
-        self.made_parent = _first_missing(self.final.parent)
+        self.made_parent = first_missing(self.final.parent)
         try:
             self.final.parent.mkdir(parents=True, exist_ok=True)
             self.staging = Path(tempfile.mkdtemp(prefix=f".{self.final.name}.", suffix=".partial", dir=self.final.parent))
