@@ -42,6 +42,27 @@ def test_run_folder_contents(short_run):
     assert again == load_scenario(None, SHORT)
 
 
+
+def test_readme_names_every_summary_key_and_filter_counter(short_run):
+    """The README's key list is the reference for code that reads ``summary.json``: every
+    top-level key a run writes, and every counter name the filter can write, is named there."""
+    import re
+    from pathlib import Path
+
+    root = Path(__file__).resolve().parents[1]
+    readme = (root / "README.md").read_text()
+    _, summary = short_run
+    missing = [k for k in [*summary, "note"] if f"`{k}`" not in readme]
+    assert not missing, f"summary.json keys not in the README: {missing}"
+    src = "\n".join(p.read_text() for p in (root / "v2v" / "estimation").glob("*.py"))
+    names = set(re.findall(r'_count\(f?"([a-z_{}]+)"', src))
+    names |= set(re.findall(r'counters\[\s*"([a-z_]+)"\s*\]', src))
+    assert len(names) >= 15  # the regexes still find the counters
+    documented = {n.replace("{kind}", "<kind>") for n in names}
+    missing = sorted(n for n in documented if f"`{n}`" not in readme)
+    assert not missing, f"filter counters not in the README: {missing}"
+
+
 def test_stage_timings_are_disjoint_and_the_replay_has_its_own(short_run, tmp_path):
     """summary.json's stages are disjoint parts of the wall time (their sum cannot exceed it;
     measurements_io, with --save-measurements, is the part of metrics_io that writes them),
