@@ -704,10 +704,11 @@ class ClusterFilterBase(ABC):
             if jobs:
                 infos += self._sd_dopplers_all(geo, lead_ep, jobs)
         code_ok: dict[str, set[int]] = {}  # accepted SD pseudoranges: only the carrier phase uses them
+        code_rejected: dict[str, set[int]] = {}  # tested and rejected (not masked, not missing)
         if self.config.phase is not None:
             for info in infos:
-                if info.kind == KIND_SD_PR and info.accepted:
-                    code_ok.setdefault(info.vehicles[0], set()).add(info.prn)
+                if info.kind == KIND_SD_PR:
+                    (code_ok if info.accepted else code_rejected).setdefault(info.vehicles[0], set()).add(info.prn)
         # Fewer than 4 SD pseudoranges (satellites seen by both): the epoch cannot fix the
         # relative position, so add "relative up = h_v - h_lead" as in epochs without GNSS (MacGougan
         # (2009) section 5: "a height constraint was employed when fewer than 4 GPS satellites
@@ -719,7 +720,7 @@ class ClusterFilterBase(ABC):
             if weak:
                 infos += self.update_height_aiding(self.config.height_aiding_sigma_m, weak)
         if self.config.phase is not None:
-            infos += self._update_phase(all_epochs, all_epochs.get(lay.lead), geo, code_ok)
+            infos += self._update_phase(all_epochs, all_epochs.get(lay.lead), geo, code_ok, code_rejected)
         return infos
 
     def _cn0_masked(self, epochs: dict[str, GnssEpoch]) -> dict[str, GnssEpoch]:
@@ -751,7 +752,8 @@ class ClusterFilterBase(ABC):
 
     # ----------------------------------------------------------------- carrier phase
     def _update_phase(self, epochs: dict[str, GnssEpoch], lead_ep: GnssEpoch | None,
-                      geo: GnssGeometry, code_ok: dict[str, set[int]]) -> list[UpdateInfo]:
+                      geo: GnssGeometry, code_ok: dict[str, set[int]],
+                      code_rejected: dict[str, set[int]] | None = None) -> list[UpdateInfo]:
         """SD carrier-phase updates of every vehicle, then ambiguity resolution
         (:mod:`v2v.estimation.phase`: lifecycle, slips, LAMBDA, fix-and-hold).
 
@@ -759,7 +761,15 @@ class ClusterFilterBase(ABC):
         this epoch. Only their phases are used: an echo-only signal has the same excess
         path on code and carrier, and a fresh ambiguity on it would absorb that excess and
         be "fixed" at once when the position is already fixed; its code, metres off, is
-        what the innovation test catches."""
+        what the innovation test catches. ``code_rejected[v]``: those whose SD pseudorange was
+        tested and rejected. An existing ambiguity whose code is rejected while
+        both receivers keep tracking the satellite without a slip keeps its state (counted
+        ``phase_skipped_code_rejected``) and its phase is left out of the epoch: at alpha =
+        0.001 a clean code fails ~1 test in 1000, and dropping the arc for it restarted that
+        satellite's minimum lock time. A real change of path (a LOS <-> echo switch, an echo
+        moving to another wall) starts a new carrier arc at the receiver, which the slip
+        detector's loss of lock catches; an undetected one is caught by the phases' own
+        test (``reset_after_rejections``)."""
         pc = self.config.phase
         assert pc is not None and self._slips is not None
         slipped = {v: set(ep.prn[self._slips.update(ep)].tolist()) for v, ep in epochs.items()}
@@ -784,8 +794,14 @@ class ClusterFilterBase(ABC):
                 drop += [(AMBIGUITY, (v, p)) for p in have]
                 continue
             ok_code = code_ok.get(v, set())
-            mine = {p: i for p, i in usable(ep).items() if p in lead_ok and p in ok_code}
+            both = {p: i for p, i in usable(ep).items() if p in lead_ok}
+            mine = {p: i for p, i in both.items() if p in ok_code}
+            rejected = code_rejected.get(v, set()) if code_rejected else set()
             for p in have - mine.keys():
+                if p in both and p in rejected:  # tracked without a slip, its code tested and rejected:
+                    # the arc is kept, its phase unused this epoch
+                    self._count("phase_skipped_code_rejected")
+                    continue
                 drop.append((AMBIGUITY, (v, p)))
                 self._count("phase_slip" if p in slipped.get(v, set()) | slipped.get(lay.lead, set())
                             else "phase_lost")
