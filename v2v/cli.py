@@ -12,7 +12,7 @@ import sys
 from pathlib import Path
 
 from v2v import __version__
-from v2v.errors import EXIT_USER_ERROR, UserError, interrupts_unwrapped
+from v2v.errors import EXIT_USER_ERROR, Terminated, UserError, interrupts_unwrapped, signals_as_interrupts
 
 
 class _Parser(argparse.ArgumentParser):
@@ -244,43 +244,30 @@ def _ephemeris(rinex: Path | None, t_gps: float):
     return NominalConstellation(t_gps)
 
 
-class _Terminated(KeyboardInterrupt):
-    """SIGTERM (``kill``, ``timeout``, a batch system's end of job), handled as Ctrl-C is: a run
-    removes its staging folder, a sweep cancels its pending runs and keeps its table consistent."""
-
-
-def _raise_terminated(signum: int, frame: object) -> None:
-    raise _Terminated
-
-
 def main(argv: list[str] | None = None) -> int:
     import signal
-    import threading
 
     parser = build_parser()
     args = parser.parse_args(argv)
     from v2v.io.atomic import PUBLISHED
 
     published_before = len(PUBLISHED)
-    in_main = threading.current_thread() is threading.main_thread()
-    old_sigterm = signal.signal(signal.SIGTERM, _raise_terminated) if in_main else None
     try:
-        with interrupts_unwrapped():  # (a signal inside a numba kernel comes out as its SystemError)
+        # (a signal inside a numba kernel comes out as its SystemError; one raised inside a
+        # ctypes callback is swallowed, and the run loop raises it again)
+        with signals_as_interrupts(), interrupts_unwrapped():
             return _dispatch(args)
     except UserError as exc:
         print(f"v2v: error: {exc.one_line()}", file=sys.stderr)
         return EXIT_USER_ERROR
     except KeyboardInterrupt as exc:
-        what = "terminated (SIGTERM)" if isinstance(exc, _Terminated) else "interrupted"
+        what = "terminated (SIGTERM)" if isinstance(exc, Terminated) else "interrupted"
         done = _completed_run_folder(args, published_before)
         if done is not None:  # the signal came after the run's folder was whole: the run is done
             print(f"v2v: {what} after the run finished; its folder {done} is complete", file=sys.stderr)
             return 0
         print(f"v2v: {what}; no partial run folder was kept", file=sys.stderr)
-        return 128 + signal.SIGTERM if isinstance(exc, _Terminated) else 130
-    finally:
-        if in_main:
-            signal.signal(signal.SIGTERM, old_sigterm)
+        return 128 + signal.SIGTERM if isinstance(exc, Terminated) else 130
 
 
 def _completed_run_folder(args: argparse.Namespace, since: int) -> Path | None:

@@ -12,6 +12,7 @@ import sys
 from collections.abc import Callable, Iterator
 from contextlib import contextmanager
 from pathlib import Path
+from typing import Any
 
 
 class UserError(Exception):
@@ -71,6 +72,61 @@ def interrupt_behind(exc: BaseException) -> KeyboardInterrupt | None:
     return None
 
 
+class Terminated(KeyboardInterrupt):
+    """SIGTERM (``kill``, ``timeout``, a batch system's end of job), handled as Ctrl-C is: a run
+    removes its staging folder, a sweep cancels its pending runs and keeps its table consistent."""
+
+
+_PENDING: list[KeyboardInterrupt] = []  # the interrupt a signal raised, until a command line handles it
+
+
+def _raise_on_signal(signum: int, frame: object) -> None:
+    import signal
+
+    exc: KeyboardInterrupt = Terminated() if signum == signal.SIGTERM else KeyboardInterrupt()
+    _PENDING.append(exc)
+    raise exc
+
+
+def check_interrupt() -> None:
+    """Raise again the interrupt a signal raised where it was swallowed: Python only prints
+    ("Exception ignored on calling ctypes callback function") what a handler raises inside a
+    ctypes callback, such as llvmlite's while numba compiles or caches a kernel, and goes on.
+    The run loop calls this once a step, so the signal still ends the run."""
+    if _PENDING:
+        raise _PENDING[-1]
+
+
+@contextmanager
+def signals_as_interrupts() -> Iterator[None]:
+    """Inside: SIGINT raises :class:`KeyboardInterrupt` and SIGTERM :class:`Terminated`, each
+    also recorded for :func:`check_interrupt` (and, if swallowed, not printed as an "Exception
+    ignored" traceback); outside, the handlers and hook before and no record.
+    (Off the main thread, where handlers cannot be set, it changes nothing.)"""
+    import signal
+    import threading
+
+    if threading.current_thread() is not threading.main_thread():
+        yield
+        return
+    old = {sig: signal.signal(sig, _raise_on_signal) for sig in (signal.SIGINT, signal.SIGTERM)}
+    old_hook = sys.unraisablehook
+
+    def quiet_hook(unraisable: Any) -> None:  # our swallowed interrupt: check_interrupt raises it
+        if not any(unraisable.exc_value is e for e in _PENDING):
+            old_hook(unraisable)
+
+    _PENDING.clear()
+    sys.unraisablehook = quiet_hook
+    try:
+        yield
+    finally:
+        sys.unraisablehook = old_hook
+        for sig, handler in old.items():
+            signal.signal(sig, handler)
+        _PENDING.clear()
+
+
 @contextmanager
 def interrupts_unwrapped() -> Iterator[None]:
     """Re-raise an exception that :func:`interrupt_behind` finds a Ctrl-C (or SIGTERM) behind
@@ -93,7 +149,7 @@ def script_main(main: Callable[[], int | None], prog: str) -> int:
     from v2v.io.atomic import discard_empty_made_folders
 
     try:
-        with interrupts_unwrapped():
+        with signals_as_interrupts(), interrupts_unwrapped():
             return int(main() or 0)
     except UserError as exc:
         discard_empty_made_folders()

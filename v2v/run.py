@@ -35,7 +35,7 @@ import numpy as np
 
 from v2v import __version__
 from v2v.config.scenario import Scenario, save_resolved
-from v2v.errors import UserError
+from v2v.errors import UserError, check_interrupt
 from v2v.frames import GeoReference
 from v2v.io.atomic import RunFolder, atomic_write_json, atomic_write_parquet
 from v2v.io.tables import ParquetStream
@@ -581,6 +581,7 @@ def _run_scenario(scenario: Scenario, out_dir: Path, *, quiet: bool, replay: boo
                         break  # every cluster vehicle has arrived
                     t_end = raw[-1].t_s
                     bar.update(1)
+                    check_interrupt()  # (a signal a ctypes callback swallowed: numba compiling)
                     cut = t_end >= next_cut - 1e-9
                     if cut or len(raw) >= _CONVERT_STEPS:
                         add_raw()
@@ -595,6 +596,7 @@ def _run_scenario(scenario: Scenario, out_dir: Path, *, quiet: bool, replay: boo
             stats = sim.stats
             timing["traffic"] += time.perf_counter() - t0
             process(final=True)
+            check_interrupt()
             truth.close()
             window.clear()
             t0 = time.perf_counter()
