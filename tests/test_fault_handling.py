@@ -182,6 +182,95 @@ def test_divergence_reset_and_nees_back_in_band():
     assert lo <= np.mean(means) <= hi, (np.mean(means), lo, hi)
 
 
+
+def _suspect_run(seed: int, *, suspect_at_s: float, corrupt_m: float = 0.0, four_until_s: float | None = None,
+                 duration_s: float = 14.0):
+    """A GNSS-only run in which v1's divergence test is made to fire at ``suspect_at_s`` (its
+    state moved ``corrupt_m`` east at that epoch, its P unchanged); until ``four_until_s`` v1
+    keeps only its 4 highest satellites from that epoch on. Per epoch: (t, counters)."""
+    scn = SimScenario(n_vehicles=3, duration_s=duration_s, uwb=False, bearing_vehicles=())
+    cfg = FilterConfig()
+    eps = simulate(scn, cfg, np.random.default_rng(seed))
+    ekf = ClusterEkf(sim_layout(3), cfg)
+    log = []
+    for k, ep in enumerate(eps):
+        if k:
+            ekf.predict(scn.dt_s)
+        gnss = ep.gnss
+        if four_until_s is not None and suspect_at_s - 1e-9 <= ep.t_s < four_until_s - 1e-9:
+            g = gnss["v1"]
+            gnss = {**gnss, "v1": _subset(g, g.elevation_rad >= np.sort(g.elevation_rad)[-4])}
+        if abs(ep.t_s - suspect_at_s) < 1e-6:
+            ekf._get_x()[ekf.layout.position("v1").start] += corrupt_m
+            ekf._suspect.add("v1")  # as the window's test does (_window_diverged)
+        ekf.update_gnss(gnss, ep.lead_base_ecef_m)
+        _spd(ekf)
+        log.append((ep.t_s, dict(ekf.counters)))
+    return log
+
+
+def test_a_suspect_state_that_a_trusted_snapshot_agrees_with_is_kept():
+    """The divergence test fires on wrong pseudoranges as well as on a wrong state, so a reset
+    waits for a snapshot it can trust (>= 5 satellites after the blunder screen, residuals
+    inside their chi-square bound) that disagrees with the state (chi-square, 3 dof, alpha =
+    0.001). Here the state is right: the next epoch's 8-satellite snapshot agrees, the
+    suspicion is cleared and nothing is reset. Both the state and the snapshot are consistent
+    in this world, so a false reset has probability alpha per seed: over 10 seeds P(any) ~ 1 %."""
+    for seed in range(10):
+        counters = _suspect_run(seed, suspect_at_s=8.0)[-1][1]
+        assert counters.get("divergence_cleared", 0) == 1, seed
+        assert counters.get("divergence_reset", 0) == 0, seed
+
+
+def _recording(replace_, seen: list):
+    """``replace_`` (an engine's ``_replace``) that first records the covariance it is given."""
+    def rec(x, P):
+        seen.append(np.array(P))
+        return replace_(x, P)
+    return rec
+
+
+def test_a_cleared_suspicion_scales_the_vehicle_covariance_by_the_window_mean_nis():
+    """When a trusted snapshot agrees, the state is kept and its covariance scaled by the
+    window's capped mean NIS m, the covariance-matching step: v1's rows and columns of P by
+    sqrt(m) (its block by m), every other entry unchanged. Here the window holds 50 tests of
+    NIS 6 (below the cap k^2 = 10.8): m = 6, computed by hand."""
+    scn = SimScenario(n_vehicles=3, duration_s=8.05, uwb=False, bearing_vehicles=())
+    cfg = FilterConfig()
+    eps = simulate(scn, cfg, np.random.default_rng(5))
+    ekf = ClusterEkf(sim_layout(3), cfg)
+    seen = []
+    for k, ep in enumerate(eps):
+        if k:
+            ekf.predict(scn.dt_s)
+        if abs(ep.t_s - 8.0) < 1e-6:
+            w = ekf._nis_window["v1"]
+            for _ in range(cfg.divergence_window):
+                w.add(6.0, True)
+            ekf._suspect.add("v1")
+            before = ekf.P.copy()
+            ekf._replace = _recording(ekf._replace, seen)
+        ekf.update_gnss(ep.gnss, ep.lead_base_ecef_m)
+    assert ekf.counters.get("divergence_cleared", 0) == 1 and ekf.counters.get("divergence_reset", 0) == 0
+    assert len(seen) == 1
+    d = np.ones(len(before))
+    d[ekf.layout.block("vehicle", "v1")] = np.sqrt(6.0)
+    np.testing.assert_allclose(seen[0], before * np.outer(d, d), rtol=1e-12, atol=0.0)
+    _spd(ekf)
+
+
+def test_a_reset_waits_for_a_snapshot_it_can_trust():
+    """v1's state is 50 m off while it tracks only 4 satellites: a 4-satellite snapshot has no
+    redundancy (an echo or blunder in it cannot show), so the suspect state is neither reset
+    nor cleared; the first epoch with its 8 satellites back resets it."""
+    log = _suspect_run(3, suspect_at_s=8.0, corrupt_m=50.0, four_until_s=10.0)
+    during = [c for t, c in log if 8.0 - 1e-9 <= t < 10.0 - 1e-9]
+    assert during and all(c.get("divergence_reset", 0) == 0 and c.get("divergence_cleared", 0) == 0 for c in during)
+    first_back = next(c for t, c in log if t >= 10.0 - 1e-9)
+    assert first_back.get("divergence_reset", 0) == 1
+    assert log[-1][1].get("divergence_reset", 0) == 1
+
+
 def test_two_blunders_excluded_and_integrity_flag():
     """Two 60 m (8.5 sigma) blunders in one epoch of 8 SVs: both flagged by the w-test and left
     out, the baseline is not pulled (iterative data snooping cannot separate every pair: for
