@@ -188,25 +188,17 @@ def _suspect_run(seed: int, *, suspect_at_s: float, corrupt_m: float = 0.0, four
     """A GNSS-only run in which v1's divergence test is made to fire at ``suspect_at_s`` (its
     state moved ``corrupt_m`` east at that epoch, its P unchanged); until ``four_until_s`` v1
     keeps only its 4 highest satellites from that epoch on. Per epoch: (t, counters)."""
-    scn = SimScenario(n_vehicles=3, duration_s=duration_s, uwb=False, bearing_vehicles=())
-    cfg = FilterConfig()
-    eps = simulate(scn, cfg, np.random.default_rng(seed))
-    ekf = ClusterEkf(sim_layout(3), cfg)
-    log = []
-    for k, ep in enumerate(eps):
-        if k:
-            ekf.predict(scn.dt_s)
-        gnss = ep.gnss
+    def before(ep, ekf, gnss):
         if four_until_s is not None and suspect_at_s - 1e-9 <= ep.t_s < four_until_s - 1e-9:
             g = gnss["v1"]
             gnss = {**gnss, "v1": _subset(g, g.elevation_rad >= np.sort(g.elevation_rad)[-4])}
         if abs(ep.t_s - suspect_at_s) < 1e-6:
             ekf._get_x()[ekf.layout.position("v1").start] += corrupt_m
             ekf._suspect.add("v1")  # as the window's test does (_window_diverged)
-        ekf.update_gnss(gnss, ep.lead_base_ecef_m)
-        _spd(ekf)
-        log.append((ep.t_s, dict(ekf.counters)))
-    return log
+        return gnss
+
+    scn = SimScenario(n_vehicles=3, duration_s=duration_s, uwb=False, bearing_vehicles=())
+    return [(ep.t_s, dict(ekf.counters)) for ep, ekf, _ in fault_run(scn, seed, check=_spd, before=before)]
 
 
 def test_a_suspect_state_that_a_trusted_snapshot_agrees_with_is_kept():
@@ -237,25 +229,25 @@ def test_a_cleared_suspicion_scales_the_vehicle_covariance_by_the_window_mean_ni
     NIS 6 (below the cap k^2 = 10.8): m = 6, computed by hand."""
     scn = SimScenario(n_vehicles=3, duration_s=8.05, uwb=False, bearing_vehicles=())
     cfg = FilterConfig()
-    eps = simulate(scn, cfg, np.random.default_rng(5))
-    ekf = ClusterEkf(sim_layout(3), cfg)
-    seen = []
-    for k, ep in enumerate(eps):
-        if k:
-            ekf.predict(scn.dt_s)
+    seen, before_p = [], []
+
+    def before(ep, ekf, gnss):
         if abs(ep.t_s - 8.0) < 1e-6:
             w = ekf._nis_window["v1"]
             for _ in range(cfg.divergence_window):
                 w.add(6.0, True)
             ekf._suspect.add("v1")
-            before = ekf.P.copy()
+            before_p.append(ekf.P.copy())
             ekf._replace = _recording(ekf._replace, seen)
-        ekf.update_gnss(ep.gnss, ep.lead_base_ecef_m)
+        return gnss
+
+    *_, (_, ekf, _) = fault_run(scn, 5, cfg=cfg, before=before)
     assert ekf.counters.get("divergence_cleared", 0) == 1 and ekf.counters.get("divergence_reset", 0) == 0
     assert len(seen) == 1
-    d = np.ones(len(before))
+    p0 = before_p[0]
+    d = np.ones(len(p0))
     d[ekf.layout.block("vehicle", "v1")] = np.sqrt(6.0)
-    np.testing.assert_allclose(seen[0], before * np.outer(d, d), rtol=1e-12, atol=0.0)
+    np.testing.assert_allclose(seen[0], p0 * np.outer(d, d), rtol=1e-12, atol=0.0)
     _spd(ekf)
 
 

@@ -31,6 +31,9 @@ BLUNDER_SIZES = (4.0, 5.0, 6.0)  # innovation sigmas
 CONVERGE_EPOCHS = 30  # 3 s at 10 Hz before the first trial
 
 Check = Callable[[ClusterEkf], Any] | None
+#: called before an epoch's update with (epoch, filter, its GNSS epochs by vehicle); returns
+#: the GNSS epochs to update with (a test's tampering: satellites left out, a state moved)
+Before = Callable[[SimEpoch, ClusterEkf, dict[str, GnssEpoch] | None], dict[str, GnssEpoch] | None] | None
 
 
 def sim_layout(n: int) -> StateLayout:
@@ -118,11 +121,12 @@ def uwb_blunder_trials(n_trials: int, b: float, seed: int, *, check: Check = Non
 
 
 def fault_run(scn: SimScenario, seed: int, *, cfg: FilterConfig | None = None, jump_at_s: float | None = None,
-              corrupt_at_s: float | None = None,
-              check: Check = None) -> Iterator[tuple[SimEpoch, ClusterEkf, Sequence[UpdateInfo]]]:
+              corrupt_at_s: float | None = None, check: Check = None,
+              before: Before = None) -> Iterator[tuple[SimEpoch, ClusterEkf, Sequence[UpdateInfo]]]:
     """Filter ``scn`` with a 1 ms clock jump of v1's receiver from ``jump_at_s`` on (every
     pseudorange + 299 792.458 m) and/or a +50 m east corruption of v1's state at
-    ``corrupt_at_s``; yields (epoch, filter, update records) after every epoch."""
+    ``corrupt_at_s``, and whatever ``before`` does to each epoch; yields (epoch, filter, update
+    records) after every epoch."""
     cfg = cfg or FilterConfig()
     eps = simulate(scn, cfg, np.random.default_rng(seed))
     ekf = ClusterEkf(sim_layout(scn.n_vehicles), cfg)
@@ -134,6 +138,8 @@ def fault_run(scn: SimScenario, seed: int, *, cfg: FilterConfig | None = None, j
         gnss = ep.gnss
         if gnss is not None and jump_at_s is not None and ep.t_s >= jump_at_s - 1e-9:
             gnss = with_pr_offset(gnss, "v1", CLOCK_JUMP_M)
+        if before is not None:
+            gnss = before(ep, ekf, gnss)
         infos = ekf.update_epoch(gnss=gnss, lead_base_ecef_m=ep.lead_base_ecef_m, uwb=ep.uwb, bearings=ep.bearings)
         if check is not None:
             check(ekf)
