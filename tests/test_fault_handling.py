@@ -194,7 +194,7 @@ def _suspect_run(seed: int, *, suspect_at_s: float, corrupt_m: float = 0.0, four
             gnss = {**gnss, "v1": _subset(g, g.elevation_rad >= np.sort(g.elevation_rad)[-4])}
         if abs(ep.t_s - suspect_at_s) < 1e-6:
             ekf._get_x()[ekf.layout.position("v1").start] += corrupt_m
-            ekf._suspect.add("v1")  # as the window's test does (_window_diverged)
+            ekf._suspect["v1"] = ep.t_s  # as the window's test does (_window_diverged)
         return gnss
 
     scn = SimScenario(n_vehicles=3, duration_s=duration_s, uwb=False, bearing_vehicles=())
@@ -214,52 +214,48 @@ def test_a_suspect_state_that_a_trusted_snapshot_agrees_with_is_kept():
         assert counters.get("divergence_reset", 0) == 0, seed
 
 
-def _recording(replace_, seen: list):
-    """``replace_`` (an engine's ``_replace``) that first records the covariance it is given."""
-    def rec(x, P):
-        seen.append(np.array(P))
-        return replace_(x, P)
-    return rec
-
-
-def test_a_cleared_suspicion_scales_the_vehicle_covariance_by_the_window_mean_nis():
-    """When a trusted snapshot agrees, the state is kept and its covariance scaled by the
-    window's capped mean NIS m, the covariance-matching step: v1's rows and columns of P by
-    sqrt(m) (its block by m), every other entry unchanged. Here the window holds 50 tests of
-    NIS 6 (below the cap k^2 = 10.8): m = 6, computed by hand."""
-    scn = SimScenario(n_vehicles=3, duration_s=8.05, uwb=False, bearing_vehicles=())
+def test_a_divergence_trip_scales_the_vehicle_covariance_by_the_window_mean_nis():
+    """The trip's covariance-matching step: v1's rows and columns of P scaled by sqrt(m) (its
+    block by m), every other entry unchanged, m = the window's mean NIS with each capped at
+    the gate's k^2. Here 49 tests of NIS 6 and one blunder of NIS 1000 (capped):
+    m = (49 * 6 + k^2) / 50, computed by hand."""
     cfg = FilterConfig()
-    seen, before_p = [], []
-
-    def before(ep, ekf, gnss):
-        if abs(ep.t_s - 8.0) < 1e-6:
-            w = ekf._nis_window["v1"]
-            for _ in range(cfg.divergence_window):
-                w.add(6.0, True)
-            ekf._suspect.add("v1")
-            before_p.append(ekf.P.copy())
-            ekf._replace = _recording(ekf._replace, seen)
-        return gnss
-
-    *_, (_, ekf, _) = fault_run(scn, 5, cfg=cfg, before=before)
-    assert ekf.counters.get("divergence_cleared", 0) == 1 and ekf.counters.get("divergence_reset", 0) == 0
-    assert len(seen) == 1
-    p0 = before_p[0]
+    scn = SimScenario(n_vehicles=3, duration_s=8.0, uwb=False, bearing_vehicles=())
+    *_, (_, ekf, _) = fault_run(scn, 5, cfg=cfg)
+    w = ekf._nis_window["v1"]
+    for nis in [6.0] * 49 + [1000.0]:
+        w.add(nis, nis < cfg.gate_k**2)
+    m = (49 * 6.0 + cfg.gate_k**2) / 50
+    p0 = ekf.P.copy()
+    ekf._inflate("v1")
     d = np.ones(len(p0))
-    d[ekf.layout.block("vehicle", "v1")] = np.sqrt(6.0)
-    np.testing.assert_allclose(seen[0], p0 * np.outer(d, d), rtol=1e-12, atol=0.0)
+    d[ekf.layout.block("vehicle", "v1")] = np.sqrt(m)
+    np.testing.assert_allclose(ekf.P, p0 * np.outer(d, d), rtol=1e-12, atol=0.0)
+    assert "v1" not in ekf._nis_window  # the window starts again
     _spd(ekf)
 
 
 def test_a_reset_waits_for_a_snapshot_it_can_trust():
     """v1's state is 50 m off while it tracks only 4 satellites: a 4-satellite snapshot has no
     redundancy (an echo or blunder in it cannot show), so the suspect state is neither reset
-    nor cleared; the first epoch with its 8 satellites back resets it."""
-    log = _suspect_run(3, suspect_at_s=8.0, corrupt_m=50.0, four_until_s=10.0)
-    during = [c for t, c in log if 8.0 - 1e-9 <= t < 10.0 - 1e-9]
+    nor cleared; the first epoch with its 8 satellites back (1.5 s later, inside
+    ``divergence_confirm_s`` = 2 s) resets it."""
+    log = _suspect_run(3, suspect_at_s=8.0, corrupt_m=50.0, four_until_s=9.5)
+    during = [c for t, c in log if 8.0 - 1e-9 <= t < 9.5 - 1e-9]
     assert during and all(c.get("divergence_reset", 0) == 0 and c.get("divergence_cleared", 0) == 0 for c in during)
-    first_back = next(c for t, c in log if t >= 10.0 - 1e-9)
+    first_back = next(c for t, c in log if t >= 9.5 - 1e-9)
     assert first_back.get("divergence_reset", 0) == 1
+
+
+def test_a_reset_without_a_trusted_snapshot_comes_after_divergence_confirm_s():
+    """The same 50 m off state with 4 satellites for 5 s: no trusted snapshot comes, and
+    ``divergence_confirm_s`` (2 s) after the trip the 4-satellite snapshot resets it (the
+    first epoch at or after 10.0 s), as a reset to the uninitialized prior would."""
+    log = _suspect_run(3, suspect_at_s=8.0, corrupt_m=50.0, four_until_s=13.0)
+    before = [c for t, c in log if t < 10.0 - 1e-9]
+    assert all(c.get("divergence_reset", 0) == 0 for c in before)
+    at = next(c for t, c in log if t >= 10.0 - 1e-9)
+    assert at.get("divergence_reset", 0) == 1 and at.get("divergence_cleared", 0) == 0
     assert log[-1][1].get("divergence_reset", 0) == 1
 
 

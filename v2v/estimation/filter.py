@@ -71,13 +71,14 @@ Fault handling (issue 8):
   geometries, while its capped mean NIS is ~7), or the position standard deviation exceeds
   ``divergence_position_sigma_m``, the vehicle is reset. The covariance's growth resets it
   at once to the uninitialized prior, re-initialized by the snapshot least squares of its
-  next GNSS epoch. The window's tests make it suspect (``divergence_suspected``): the test
-  fires on wrong pseudoranges (an echo-only sky) as well as on a wrong state, so the block
-  is reset (``divergence_reset``) to the first snapshot that can be trusted (>= 5 satellites
-  after the blunder screen, residuals inside their chi-square bound) and disagrees with
-  the state (chi-square, 3 dof, both covariances); one that agrees keeps the state, its
-  covariance scaled by the window's capped mean NIS (``divergence_cleared``); with fewer
-  satellites it waits
+  next GNSS epoch. The window's tests make it suspect (``divergence_suspected``): its
+  covariance is scaled by the window's capped mean NIS (covariance matching: the window
+  said P covered the innovations short by that factor), and since the test fires on wrong
+  pseudoranges (an echo-only sky) as well as on a wrong state, the block is reset
+  (``divergence_reset``) to the first snapshot that can be trusted (>= 5 satellites after
+  the blunder screen, residuals inside their chi-square bound) and disagrees with the
+  state (chi-square, 3 dof, both covariances), or after ``divergence_confirm_s`` to the
+  first snapshot there is; a trusted one that agrees clears it (``divergence_cleared``)
   (:meth:`_confirm_divergence`). The window's
   mean NIS is available as :meth:`ClusterFilterBase.window_mean_nis` for diagnostics.
 
@@ -245,6 +246,7 @@ class FilterConfig:
     divergence_reject_fraction: float = 0.5
     divergence_mean_nis: float = 5.0
     divergence_position_sigma_m: float = 1000.0
+    divergence_confirm_s: float = 2.0
     phase: PhaseConfig | None = None
 
     def __post_init__(self) -> None:
@@ -264,6 +266,9 @@ class FilterConfig:
         if not self.divergence_mean_nis > 1.0:
             raise UserError(f"must exceed 1 (the NIS expectation), got {self.divergence_mean_nis!r}",
                             field="filter.divergence_mean_nis", fix="e.g. 5 (use inf to test the rejected fraction only)")
+        if not (math.isfinite(self.divergence_confirm_s) and self.divergence_confirm_s >= 0.0):
+            raise UserError(f"must be a finite time >= 0 s, got {self.divergence_confirm_s!r}",
+                            field="filter.divergence_confirm_s", fix="e.g. 2 (0: reset at the next snapshot)")
         if self.divergence_window < 1 or not 0.0 < self.divergence_reject_fraction <= 1.0:
             raise UserError("needs window >= 1 and 0 < reject fraction <= 1", field="filter.divergence_window")
 
@@ -532,7 +537,8 @@ class ClusterFilterBase(ABC):
         self.counters: dict[str, int] = {}
         self.integrity_available: dict[str, bool] = {}
         self._nis_window: dict[str, NisWindow] = {}
-        self._suspect: set[str] = set()  # divergence test fired: reset once a snapshot confirms it
+        # divergence test fired (vehicle -> its epoch time then): reset once a snapshot confirms it
+        self._suspect: dict[str, float] = {}
         self._vehicle_ready = {v: False for v in layout.vehicles}
         self._azimuth_ready = {v: False for v in layout.azimuth_vehicles}
         pc = self.config.phase
@@ -604,7 +610,7 @@ class ClusterFilterBase(ABC):
         self._vehicle_ready.pop(v, None)
         self._azimuth_ready.pop(v, None)
         self._nis_window.pop(v, None)
-        self._suspect.discard(v)
+        self._suspect.pop(v, None)
         self.integrity_available.pop(v, None)
         self._replace(x, P)
 
@@ -701,9 +707,12 @@ class ClusterFilterBase(ABC):
             # every paired vehicle a job (the usual epoch): the jobs' gathers are the pairing's
             pairing = _Pairing(prn_cat, pr_cat, row0, iv_cat, il_cat, moff_v) if len(pr_jobs) == len(have) else None
             infos += self._sd_pseudoranges_all(geo, lead_ep, pr_jobs, pairing)
-        for v, *_ in pr_jobs:
-            if v not in self._suspect and self._window_diverged(v):
-                self._suspect.add(v)  # reset when a snapshot confirms it (_confirm_divergence)
+        for v, ep, *_ in pr_jobs:
+            if self._window_diverged(v):
+                self._inflate(v)
+                # reset when a snapshot confirms it (_confirm_divergence); a second trip while
+                # suspect inflates again and keeps the first trip's time
+                self._suspect.setdefault(v, ep.t_s)
                 self._count("divergence_suspected")
         # pair SDs need a satellite the lead does not see (finite); none when the pairing kept
         # every satellite of every vehicle (the usual open-sky epoch): nothing to look for. (A
@@ -1099,7 +1108,7 @@ class ClusterFilterBase(ABC):
                         np.eye(8) * self.config.uninitialized_variance)
         self._vehicle_ready[v] = False
         self._nis_window.pop(v, None)
-        self._suspect.discard(v)
+        self._suspect.pop(v, None)
         self._count("divergence_reset")
 
     def _sd_pseudoranges(self, v: str, geo: GnssGeometry, ep: GnssEpoch, lead_ep: GnssEpoch,
@@ -1234,51 +1243,63 @@ class ClusterFilterBase(ABC):
 
     def _confirm_divergence(self, v: str, geo: GnssGeometry, ep: GnssEpoch, lead_ep: GnssEpoch,
                             iv: NDArray, il: NDArray) -> bool:
-        """A suspect vehicle (its divergence test fired) against this epoch's snapshot: reset to
-        the snapshot (True, counted ``divergence_reset``: this epoch's pseudoranges and
-        Dopplers are in the block's covariance and are not used again in an update, as after
-        an initialization) when the snapshot can be trusted and disagrees with the state; when
-        it agrees, keep the state, scale its covariance by the window's capped mean NIS and
-        clear the suspicion (``divergence_cleared``); without a trusted snapshot, wait for
-        another epoch (False both times).
+        """A suspect vehicle (its divergence test fired and inflated its covariance) against
+        this epoch's snapshot. Reset to the snapshot (True, counted ``divergence_reset``: this
+        epoch's pseudoranges and Dopplers are in the block's covariance and are not used again
+        in an update, as after an initialization) when it can be trusted and disagrees with the
+        state, or, ``divergence_confirm_s`` after the trip, to any snapshot (the
+        ``init_min_satellites`` of an initialization). A trusted snapshot that agrees clears
+        the suspicion (``divergence_cleared``) and the state is kept with its inflated
+        covariance. Else wait (False both times).
 
         Trusted: at least 5 satellites left after the blunder screen (one redundant, so that a
         single echo or blunder shows) and its residuals' sum of squares inside the chi-square
         bound (1 - alpha, n - 4 dof). Disagrees: the position difference's Mahalanobis
         distance, with the state's and the snapshot's covariances added, beyond the chi-square
-        (1 - alpha, 3 dof) bound. The test fires on wrong pseudoranges as well as on a wrong
-        state (an echo-only sky trips the window's mean NIS), and a snapshot of 2-4 satellites
-        in a street canyon, mostly echoes, is worse than a state that UWB ranges and bearings
-        hold: a reset to it restarted the vehicle tens of metres off."""
-        snap = self._snapshot(v, geo, ep, lead_ep, iv, il, count=False, min_used=5)
-        if snap is None:
-            return False
-        mean, cov, chi2_res, dof = snap
-        if chi2_res > _chi2_upper(self.config.significance, dof):
-            return False
-        sl = self.layout.position(v)
-        d = self._get_x()[sl] - mean[:3]
-        s_mat = self._get_P()[sl, sl] + cov[:3, :3]
-        if float(d @ np.linalg.solve(s_mat, d)) > _chi2_upper(self.config.significance, 3):
-            # the block loses its correlations: its carrier-phase ambiguities, estimated with
-            # them, start afresh (as after a reset to the uninitialized prior)
-            if self.config.phase is not None:
-                self._drop_ambiguities([(AMBIGUITY, k) for k in self.layout.ambiguity_keys(v)])
-            self._reset_vehicle(v)
-            self._set_block(self.layout.block(VEHICLE, v), mean, cov)
-            self._vehicle_ready[v] = True
-            return True
-        # agrees: the state is kept and its covariance scaled by the window's capped mean NIS m
-        # (the vehicle's rows and columns by sqrt(m)): the window said the covariance covered
-        # the innovations short by that factor, the snapshot that the state is not off beyond
-        # both covariances; this epoch's pseudoranges then update it as usual. Measured on
-        # ab_compare's faults scenario (30 m pseudorange blunders at 20 %, seeds 1-13): keeping
-        # P as it was left states that a loose snapshot (up sigma ~15 m) cannot refute
-        # overconfident (GPS+UWB mean NEES 13.8 with the immediate reset, 28.9); scaled, 13.7.
-        # (Giving the state the snapshot's covariance was worse still: that covariance
-        # describes the snapshot's errors, its up and clock strongly correlated, not the
-        # state's; a 17 m up error was held at sigma 2 m, NEES ~200 for 15 s.)
-        w = self._nis_window.get(v)
+        (1 - alpha, 3 dof) bound. Why wait: the test fires on wrong pseudoranges as well as on
+        a wrong state (an echo-only sky trips the window's mean NIS), and in a street canyon a
+        snapshot of 2-4 satellites, mostly echoes, can be worse than a state that UWB ranges
+        and bearings hold. Why not for ever: where the state itself has gone (code-only
+        solutions among echoes), a trusted snapshot may not come for minutes. Measured (README
+        "Fault injection"): immediate reset, no timeout and 1 / 2 / 5 s on the carrier-phase
+        canyon drive and ab_compare's urban and faults scenarios; 2 s keeps the canyon's
+        gain and most of the urban one."""
+        if ep.t_s - self._suspect[v] >= self.config.divergence_confirm_s - 1e-9:
+            # waited long enough: the first snapshot there is (init_min_satellites), as a reset
+            # to the uninitialized prior would give
+            snap = self._snapshot(v, geo, ep, lead_ep, iv, il, count=False)
+            if snap is None:
+                return False
+            mean, cov = snap[0], snap[1]
+        else:
+            snap = self._snapshot(v, geo, ep, lead_ep, iv, il, count=False, min_used=5)
+            if snap is None:
+                return False
+            mean, cov, chi2_res, dof = snap
+            if chi2_res > _chi2_upper(self.config.significance, dof):
+                return False
+            sl = self.layout.position(v)
+            d = self._get_x()[sl] - mean[:3]
+            if float(d @ np.linalg.solve(self._get_P()[sl, sl] + cov[:3, :3], d)) <= _chi2_upper(
+                    self.config.significance, 3):
+                # agrees: the state is kept, with the covariance the trip inflated, and this
+                # epoch's pseudoranges update it as usual
+                self._suspect.pop(v, None)
+                self._count("divergence_cleared")
+                return False
+        # a reset: the block loses its correlations, and its carrier-phase ambiguities,
+        # estimated with them, start afresh (as after a reset to the uninitialized prior)
+        if self.config.phase is not None:
+            self._drop_ambiguities([(AMBIGUITY, k) for k in self.layout.ambiguity_keys(v)])
+        self._reset_vehicle(v)
+        self._set_block(self.layout.block(VEHICLE, v), mean, cov)
+        self._vehicle_ready[v] = True
+        return True
+
+    def _inflate(self, v: str) -> None:
+        """Scale v's covariance by its window's capped mean NIS m (its rows and columns by
+        sqrt(m)) and empty the window."""
+        w = self._nis_window.pop(v, None)
         m = w.nis_sum / len(w.tests) if w is not None and w.tests else 1.0
         if m > 1.0:
             blk = self.layout.block(VEHICLE, v)
@@ -1287,10 +1308,6 @@ class ClusterFilterBase(ABC):
             P[blk, :] *= r
             P[:, blk] *= r
             self._replace(self._get_x().copy(), P)
-        self._suspect.discard(v)
-        self._nis_window.pop(v, None)
-        self._count("divergence_cleared")
-        return False
 
     def _snapshot(self, v: str, geo: GnssGeometry, ep: GnssEpoch, lead_ep: GnssEpoch, iv: NDArray, il: NDArray,
                   count: bool, min_used: int = 4) -> tuple[F64, F64, float, int] | None:
