@@ -90,6 +90,11 @@ def test_grid_values_round_trip_through_set_syntax(value):
     ('base = "nowhere.toml"\n', "base"),
     ('[grid]\n"seed" = [1, 2]\n', "grid.seed"),
     ('[set]\nseed = 99\n', "set.seed"),  # (it would be silently replaced by each run's seed from seeds)
+    ('seeds = {start = true, count = 2}\n', "seeds"),  # true is not a number (as in the list form)
+    ('seeds = {start = 1, count = true}\n', "seeds"),
+    # one path inside another: the grid's whole cluster would override (or be overridden by) the field
+    ('[grid]\n"clusters.0" = [{name = "c1", vehicles = 2}]\n"clusters.0.vehicles" = [3]\n', "grid.clusters.0.vehicles"),
+    ('[set]\n"clusters.0.vehicles" = 5\n[grid]\n"clusters.0" = [{name = "c1", vehicles = 2}]\n', "set.clusters.0.vehicles"),
 ])
 def test_bad_study_fails_up_front_naming_the_field(tmp_path, text, field):
     study = tmp_path / "study.toml"
@@ -111,6 +116,33 @@ def test_nested_grid_tables_equal_dotted_keys_and_ids_are_stable(tmp_path):
     assert all(r.scenario.seed == r.seed for r in sa.runs)
     a.write_text('seeds = [4, 5]\n[set]\nduration_s = 9.0\n[grid]\n"clusters.0.vehicles" = [2, 4]\n')
     assert not {r.run_id for r in load_study(a).runs} & {r.run_id for r in sa.runs}, "an edited study never reuses runs"
+
+
+def test_grid_values_whose_short_labels_collide_keep_distinct_labels(tmp_path):
+    """A solutions list is labelled by its names; two lists with the same names but different
+    fields would be one label, and the report would pool the two grid points as if they were
+    seeds: the column's labels are then the full values."""
+    study = _write(tmp_path / "s.toml", 'seeds = [1]\n[grid]\nsolutions = [[{name = "GPS+UWB", sensors = ["gnss", "uwb"]}], '
+                   '[{name = "GPS+UWB", sensors = ["gnss", "uwb"], uwb_error_states = true}]]\n')
+    labels = [r.labels["solutions"] for r in load_study(study).runs]
+    assert len(set(labels)) == 2 and all("uwb" in lab for lab in labels)
+    distinct = _write(tmp_path / "d.toml", 'seeds = [1]\n[grid]\nsolutions = [[{name = "GPS", sensors = ["gnss"]}], '
+                      '[{name = "GPS+UWB", sensors = ["gnss", "uwb"]}]]\n')
+    assert [r.labels["solutions"] for r in load_study(distinct).runs] == ["GPS", "GPS+UWB"]  # short when distinct
+
+
+def test_runs_table_without_rows_has_the_dtypes_of_one_with_rows(tmp_path):
+    """An interrupted sweep's runs.parquet before any run finished: no rows, the same column
+    dtypes as a table with rows (seed int64, a grid column of ints int64, texts as text)."""
+    from v2v.sweep import _row, _runs_table
+
+    study = load_study(_write(tmp_path / "s.toml", 'seeds = [1, 2]\n[grid]\n"clusters.0.vehicles" = [2, 3]\n'))
+    spec = study.runs[0]
+    full = _runs_table(study, {spec.run_id: _row(spec, "ok", "", 1.0, {})})
+    empty = _runs_table(study, {})
+    assert len(empty) == 0 and list(empty.columns) == list(full.columns)
+    assert dict(empty.dtypes) == dict(full.dtypes)
+    assert empty["seed"].dtype == np.int64 and empty["clusters.0.vehicles"].dtype == np.int64
 
 
 def test_example_study_is_2_networks_x_2_solutions_x_5_seeds_of_30_s():
@@ -250,6 +282,21 @@ def test_rerun_executes_only_missing_runs(tiny_study, local_sweep, external_sche
 
 
 @pytest.mark.sumo
+def test_turning_replay_on_reruns_the_runs_without_a_replay(tiny_study, local_sweep, external_scheduler, tmp_path):
+    """A run made with replay = false is not complete for the same study with replay = true
+    (the study file says it "writes replay.rrd in every run folder")."""
+    out = tmp_path / "with_replay"
+    shutil.copytree(local_sweep, out)
+    study = _write(tmp_path / "tiny_replay.toml", "replay = true\n" + tiny_study.read_text())
+    study_base = load_study(study)
+    assert [r.run_id for r in study_base.runs] == [r.run_id for r in load_study(tiny_study).runs]
+    res = run_study(study, out, scheduler=external_scheduler)
+    assert (res.executed, res.skipped) == (4, 0)
+    assert all((out / "runs" / r.run_id / "replay.rrd").is_file() for r in study_base.runs)
+    assert run_study(study, out, scheduler=external_scheduler).executed == 0
+
+
+@pytest.mark.sumo
 def test_a_run_sumo_rejects_is_recorded_and_the_others_succeed(external_scheduler, tmp_path):
     study = _write(tmp_path / "fail.toml", 'seeds = [1, 2]\n[set]\nduration_s = 3.0\nsolutions = []\n'
                    "[grid]\n\"network.route_edges\" = [[], ['ap_in', 'SW-SE']]\n")
@@ -342,6 +389,17 @@ def test_dask_cli_scheduler_and_worker(tiny_study, local_sweep, tmp_path):
             if p is not None:
                 p.terminate()
                 p.wait(timeout=30)
+
+
+def test_out_folder_of_other_files_is_refused_in_one_line(tiny_study, tmp_path, capsys):
+    """--out is a new or empty folder or a sweep's: a folder of other files (a user's notes)
+    would get runs/, sweep.json and runs.parquet written among them."""
+    out = tmp_path / "notes"
+    out.mkdir()
+    (out / "notes.txt").write_text("mine\n")
+    assert _cli(["sweep", str(tiny_study), "--out", str(out), "--quiet"]) == 2
+    assert "notes.txt" in _one_error_line(capsys, "--out")
+    assert sorted(p.name for p in out.iterdir()) == ["notes.txt"]
 
 
 def test_second_sweep_on_a_busy_folder_stops_with_one_line(tiny_study, tmp_path, capsys):
@@ -463,6 +521,35 @@ def test_local_cluster_workers_have_one_thread_ignore_ctrl_c_and_come_from_the_f
     assert all(p != os.getpid() for p in parents.values()) and len(set(parents.values())) == 1
     assert all(h == signal.SIG_IGN for h in sigint.values())
     assert all(v == "1" for per_worker in env.values() for v in per_worker.values())
+
+
+def test_a_ctrl_c_during_the_cluster_start_is_held_and_acted_on_once_the_cluster_is_closed(monkeypatch):
+    """A SIGINT that arrives while the local cluster starts (~1 s) is neither dropped (the
+    study used to run to its end: SIGINT was ignored for the whole start) nor raised in the
+    middle of the start (a half-started cluster's close at exit printed tracebacks): the start
+    completes, the cluster is closed, then the interrupt is raised, and the handler is back."""
+    import signal
+
+    import dask.distributed
+
+    from v2v.sweep import _open_client
+
+    events = []
+
+    class StartedWithACtrlC:  # stands in for LocalCluster: a Ctrl-C arrives during its start
+        def __init__(self, **_kw):
+            os.kill(os.getpid(), signal.SIGINT)
+            events.append("started")
+
+        def close(self):
+            events.append("closed")
+
+    monkeypatch.setattr(dask.distributed, "LocalCluster", StartedWithACtrlC)
+    before = signal.getsignal(signal.SIGINT)
+    with pytest.raises(KeyboardInterrupt):
+        _open_client(None, 1, "127.0.0.1", 1)
+    assert events == ["started", "closed"]
+    assert signal.getsignal(signal.SIGINT) is before
 
 
 def test_huge_seed_count_is_refused_before_the_list_is_built(tmp_path, capsys):

@@ -163,6 +163,8 @@ def _label(value: Any) -> Any:
 def _column_labels(values: list[Any]) -> list[Any]:
     """Labels for one grid column, with one parquet type per column."""
     labels = [_label(v) for v in values]
+    if len({json.dumps(x) for x in labels}) < len(labels):  # (e.g. two solutions lists of the same names)
+        labels = [json.dumps(v, separators=(",", ":"), default=str) for v in values]
     if all(isinstance(x, bool) for x in labels):
         return labels
     if all(isinstance(x, int | float) and not isinstance(x, bool) for x in labels):
@@ -184,7 +186,7 @@ def _read_seeds(raw: Any, where: str) -> tuple[int, ...]:
             raise UserError(f"seeds table needs 'count' (and optionally 'start'), got keys {sorted(raw)}",
                             field="seeds", fix="write seeds = {start = 1, count = 100} or seeds = [1, 2, 3]")
         start, count = raw.get("start", 1), raw["count"]
-        if not (isinstance(start, int) and isinstance(count, int)) or count < 1:
+        if not all(isinstance(x, int) and not isinstance(x, bool) for x in (start, count)) or count < 1:
             raise UserError("seeds.start and seeds.count must be integers, count >= 1", field="seeds",
                             fix="write seeds = {start = 1, count = 100}")
         if not 0 <= start <= start + count - 1 <= MAX_SEED:  # (checked before the list is built)
@@ -228,7 +230,8 @@ def load_study(path: str | Path) -> Study:
             raise UserError("base must be a path string", field="base", fix='write base = "../scenario.toml"')
         base = (p.parent / data["base"]).resolve()
         if not base.is_file():
-            raise UserError(f"base scenario {str(base)!r} does not exist", field="base",
+            raise UserError(f"base scenario {str(base)!r} {'is a folder' if base.is_dir() else 'does not exist'}",
+                            field="base",
                             fix="give a scenario path relative to the study file, or omit base for the default")
     for flag in ("replay", "save_measurements"):
         if not isinstance(data.get(flag, False), bool):
@@ -254,6 +257,16 @@ def load_study(path: str | Path) -> Study:
         texts = [toml_inline(v) for v in values]
         if len(set(texts)) != len(texts):
             raise UserError("a value is listed twice", field=f"grid.{key}", fix="list each value once")
+    def where(k: str) -> str:
+        return "grid" if k in grid else "set"
+
+    for b in [*fixed, *grid]:  # a path inside another: one value would silently override the other
+        parts = b.split(".")
+        for a in (".".join(parts[:i]) for i in range(1, len(parts))):
+            if a in fixed or a in grid:
+                raise UserError(f"{b} ([{where(b)}]) is inside {a} ([{where(a)}]): one would silently override "
+                                "the other", field=f"{where(b)}.{b}",
+                                fix=f"give it inside {a}'s value, or split {a} into its fields")
     seeds = _read_seeds(data.get("seeds", [1]), str(p))
     study = Study(source=p.resolve(), base=base, fixed=fixed, grid=grid, seeds=seeds,
                   replay=data.get("replay", False), save_measurements=data.get("save_measurements", False))
@@ -404,8 +417,9 @@ def _runs_table(study: Study, rows: dict[str, dict[str, Any]]):
 
     ordered = [rows[s.run_id] for s in study.runs if s.run_id in rows]
     head = ["run_id", *study.grid_columns, "seed", "status", "error", "wall_s", "note"]
-    if not ordered:
-        return pd.DataFrame({c: pd.Series(dtype=object if c in ("run_id", "status", "error", "note") else float) for c in head})
+    empty = not ordered and bool(study.runs)
+    if empty:  # the dtypes of a table with rows (a first run as a prototype, then no rows)
+        ordered = [_row(study.runs[0], "ok", "", math.nan, {})]
     metrics: dict[str, None] = {}
     for r in ordered:
         metrics.update(dict.fromkeys(k for k in r if k not in head))
@@ -414,7 +428,7 @@ def _runs_table(study: Study, rows: dict[str, dict[str, Any]]):
     df["wall_s"] = df["wall_s"].astype(float)
     for c in metrics:
         df[c] = df[c].astype(float)
-    return df
+    return df.iloc[:0].copy() if empty else df
 
 
 def _write_runs(out: Path, study: Study, rows: dict[str, dict[str, Any]]):
@@ -640,12 +654,34 @@ def _open_client(scheduler: str | None, workers: int | None, host: str, n_pendin
     n = max(1, min(workers or cores, n_pending))
     # Worker processes inherit an ignored SIGINT: Ctrl-C in the terminal reaches only this process,
     # which then cancels the study and closes the cluster (instead of every worker dying mid-write).
+    # They are forked from the fork server and take its SIGINT disposition at its start, so SIGINT
+    # is ignored only while the fork server starts (a few ms, once per process). A SIGINT or
+    # SIGTERM during the cluster's start (~1 s) is held and acted on once the cluster is up and
+    # closed again: ignoring SIGINT for the whole start dropped a Ctrl-C there (the study then ran
+    # to its end), and raising in the middle of the start left a half-started cluster whose close
+    # at exit printed tracebacks.
+    config = _LOCAL_CLUSTER_CONFIG
+    if "forkserver" not in multiprocessing.get_all_start_methods():  # (Windows: Dask's default, spawn)
+        config = {k: v for k, v in config.items() if k != "distributed.worker.multiprocessing-method"}
     in_main = threading.current_thread() is threading.main_thread()
-    old_sigint = signal.signal(signal.SIGINT, signal.SIG_IGN) if in_main else None
+    with dask.config.set(config):
+        from distributed.utils import get_mp_context
+
+        forked = get_mp_context().get_start_method() == "forkserver"  # (also sets the fork server's preloads)
+    held: list[int] = []
+    old: dict[int, Any] = {}  # signal number -> the handler to put back
+    if in_main:
+        old[signal.SIGINT] = signal.signal(signal.SIGINT, signal.SIG_IGN)
+        if forked:
+            from multiprocessing import forkserver
+
+            try:
+                forkserver.ensure_running()
+            finally:
+                signal.signal(signal.SIGINT, old[signal.SIGINT])
+            for signum in (signal.SIGINT, signal.SIGTERM):  # held until the cluster is up
+                old[signum] = signal.signal(signum, lambda sn, _frame: held.append(sn))
     try:
-        config = _LOCAL_CLUSTER_CONFIG
-        if "forkserver" not in multiprocessing.get_all_start_methods():  # (Windows: Dask's default, spawn)
-            config = {k: v for k, v in config.items() if k != "distributed.worker.multiprocessing-method"}
         with warnings.catch_warnings(), dask.config.set(config):
             warnings.filterwarnings("ignore", message="Port .* is already in use")  # the scheduler's HTTP endpoint
             try:
@@ -655,8 +691,14 @@ def _open_client(scheduler: str | None, workers: int | None, host: str, n_pendin
                 raise UserError(f"the local cluster did not start on {host!r} ({one_line_error(exc)})",
                                 field="--host", fix=HOST_FIX) from None
     finally:
-        if in_main:
-            signal.signal(signal.SIGINT, old_sigint)
+        for num, h in old.items():
+            signal.signal(num, h)
+    if held:  # as the handler would have, now that the cluster can be closed
+        cluster.close()
+        first = old.get(held[0])
+        if callable(first):
+            first(held[0], None)
+        raise KeyboardInterrupt
     try:
         return Client(cluster, set_as_default=False), cluster
     except BaseException:
@@ -734,6 +776,11 @@ def _check_out_folder(study: Study, out: Path) -> None:
         if marker is not None:
             raise UserError(f"{out} is a run's folder (it holds {marker}), not a sweep's", field="--out",
                             fix="give a new or empty folder for the sweep (or this study's previous sweep folder)")
+        other_files = sorted(n.name for n in out.iterdir() if n.name not in ("runs", ".sweep.lock"))
+        if other_files:  # (runs/ alone: a sweep stopped before its sweep.json was written)
+            raise UserError(f"{out} is not empty and not a sweep's folder (it holds {other_files[0]!r})",
+                            field="--out", fix="give a new or empty folder for the sweep (or this study's previous "
+                            "sweep folder)")
         return
     recorded: str | None = None
     try:
@@ -771,8 +818,11 @@ def _scan(study: Study, runs_dir: Path) -> tuple[dict[str, dict[str, Any]], list
     rows: dict[str, dict[str, Any]] = {}
     pending: list[RunSpec] = []
     for spec in study.runs:
-        summary = read_summary(runs_dir / spec.run_id)
-        if summary is None:
+        folder = runs_dir / spec.run_id
+        summary = read_summary(folder)
+        missing = (study.replay and not (folder / "replay.rrd").is_file()) or \
+            (study.save_measurements and not (folder / "measurements.parquet").is_file())
+        if summary is None or missing:  # (a run made before replay / save_measurements was turned on)
             pending.append(spec)
         else:
             rows[spec.run_id] = _row(spec, "ok", "", float(summary.get("wall_s", math.nan)), flatten_summary(summary),
