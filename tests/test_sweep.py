@@ -608,7 +608,11 @@ def test_sweep_whose_runs_fail_exits_1_naming_the_first_error(tmp_path, capsys):
     assert _cli(["sweep", str(study), "--out", str(tmp_path / "o"), "--quiet", "--workers", "1"]) == 1
     line = _one_error_line(capsys, "network.route_edges")
     assert "1 of 1 runs failed" in line
-    assert pd.read_parquet(tmp_path / "o" / "runs.parquet")["status"].tolist() == ["failed"]
+    runs = pd.read_parquet(tmp_path / "o" / "runs.parquet")
+    assert runs["status"].tolist() == ["failed"]
+    # nothing to aggregate: the report says so in one line, with the run's error
+    assert _cli(["sweep", "report", str(tmp_path / "o")]) == 2
+    assert runs["error"][0] in _one_error_line(capsys, "DIR")
 
 
 @pytest.mark.sumo

@@ -35,7 +35,7 @@ def _add_run_options(p: argparse.ArgumentParser) -> None:
 def build_parser() -> argparse.ArgumentParser:
     p = _Parser(prog="v2v", description="Multi-vehicle V2V relative-positioning simulator (SUMO + DGPS/UWB/bearing EKF).")
     p.add_argument("--version", action="version", version=f"v2v {__version__}")
-    sub = p.add_subparsers(dest="cmd", required=True, parser_class=_Parser)
+    sub = p.add_subparsers(dest="cmd", required=True, parser_class=_Parser, metavar="COMMAND")
 
     r = sub.add_parser("run", help="run a scenario file", description="Run a scenario and write its run folder.")
     r.add_argument("scenario", type=Path, help="scenario .toml (layered over the built-in default)")
@@ -45,7 +45,8 @@ def build_parser() -> argparse.ArgumentParser:
     _add_run_options(d)
 
     n = sub.add_parser("nets", help="shipped road networks: build, list, import OpenStreetMap")
-    nsub = n.add_subparsers(dest="nets_cmd", required=True, parser_class=_Parser)
+    nsub = n.add_subparsers(dest="nets_cmd", required=True, parser_class=_Parser,
+                            metavar="{build,list,import-osm}")
     nb = nsub.add_parser("build", help="(re)build the shipped nets with netconvert")
     nb.add_argument("names", nargs="*", help="nets to build (default: all)")
     nsub.add_parser("list", help="list the shipped nets")
@@ -60,7 +61,7 @@ def build_parser() -> argparse.ArgumentParser:
     rp.add_argument("--port", type=int, default=None, help="web viewer port (with --web; default 9090)")
 
     s = sub.add_parser("scenario", help="scenario files")
-    ssub = s.add_subparsers(dest="scenario_cmd", required=True, parser_class=_Parser)
+    ssub = s.add_subparsers(dest="scenario_cmd", required=True, parser_class=_Parser, metavar="{check}")
     sc = ssub.add_parser("check", help="validate a scenario and print it resolved")
     sc.add_argument("file", type=Path)
     sc.add_argument("--set", dest="overrides", action="append", default=[], metavar="KEY=VALUE")

@@ -1027,7 +1027,10 @@ def write_report(sweep_dir: str | Path, out_dir: str | Path | None = None) -> Re
                         fix="rerun the sweep into DIR (finished runs are kept and re-listed)") from None
     if df.empty or "status" not in df or not (df["status"] == "ok").any():
         n = len(df)
-        raise UserError(f"{runs_file} lists {n} run(s), none finished", field="DIR",
+        errors = df["error"].astype(str) if "error" in df else pd.Series([], dtype=str)
+        first = next((e for e in errors if e), "")
+        raise UserError(f"{runs_file} lists {n} run(s), none finished" + (f" (first error: {first})" if first else ""),
+                        field="DIR",
                         fix="run the study (again) first; failed runs have their one-line error in the `error` column")
     out = Path(out_dir) if out_dir is not None else src
     make_folder(out)
@@ -1178,7 +1181,8 @@ def add_sweep_parser(subparsers) -> argparse.ArgumentParser:
     )
     parser_class = type(s)  # the CLI's parser class (one-line errors)
     s.__class__ = type("SweepParser", (_DefaultRunParser, parser_class), {})
-    ssub = s.add_subparsers(dest="sweep_cmd", required=True, parser_class=parser_class)
+    ssub = s.add_subparsers(dest="sweep_cmd", required=True, parser_class=parser_class,
+                            metavar="STUDY.toml | report DIR")
     r = ssub.add_parser("run", help="run a study (the default sub-command)",
                         description="Run every run of a study that is not yet complete in --out.")
     r.add_argument("study", type=Path, help="study .toml: base scenario, [grid], seeds")
