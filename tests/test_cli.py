@@ -4,6 +4,8 @@ and never a run folder left behind that looks complete."""
 from __future__ import annotations
 
 import os
+import shlex
+import shutil
 import signal
 import subprocess
 import sys
@@ -13,6 +15,8 @@ from pathlib import Path
 import pytest
 
 from v2v.cli import main
+
+REPO = Path(__file__).resolve().parents[1]
 
 
 def _v2v(*args: str, cwd: Path) -> subprocess.CompletedProcess:
@@ -252,6 +256,10 @@ def test_replay_command_points_at_the_recording(tmp_path):
     with pytest.raises(UserError, match="RUN_DIR"):
         replay_command(tmp_path)
     (tmp_path / "replay.rrd").write_bytes(b"")
+    with pytest.raises(UserError, match="not a rerun recording") as ei:  # rerun would serve an empty viewer
+        replay_command(tmp_path)
+    assert ei.value.field == "RUN_DIR"
+    (tmp_path / "replay.rrd").write_bytes(b"RRF2" + bytes(60))  # rerun's file header (FourCC)
     cmd = replay_command(tmp_path, web=True, port=9123)
     assert cmd[-1] == str(tmp_path / "replay.rrd")
     assert "--serve-web" in cmd and cmd[cmd.index("--bind") + 1] == "127.0.0.1" and "9123" in cmd
@@ -266,7 +274,7 @@ def test_replay_command_points_at_the_recording(tmp_path):
 def test_replay_without_a_display_says_to_use_web(tmp_path, monkeypatch, capsys):
     """No display (a server, CI, SSH without X forwarding): one line pointing to --web instead of
     rerun's multi-line window-system error; --port without --web is refused, not ignored."""
-    (tmp_path / "replay.rrd").write_bytes(b"")
+    (tmp_path / "replay.rrd").write_bytes(b"RRF2" + bytes(60))
     for k in ("DISPLAY", "WAYLAND_DISPLAY", "WAYLAND_SOCKET"):
         monkeypatch.delenv(k, raising=False)
     monkeypatch.setattr(sys, "platform", "linux")
@@ -405,6 +413,39 @@ def test_sky_refuses_a_place_given_twice(capsys):
     assert main(["sky", "--scenario", str(sc), "--lat", "10", "--lon", "10"]) == 2
     err = [ln for ln in capsys.readouterr().err.splitlines() if ln.strip()]
     assert len(err) == 1 and err[0].startswith("v2v: error: --lat: --lat, --lon and --scenario") and "fix:" in err[0], err
+
+
+def test_sky_of_a_scenario_is_its_sky_from_its_folder(tmp_path, capsys):
+    """--scenario takes the scenario's ephemeris and elevation mask (not the nominal sky at
+    10 deg), and its relative paths from its folder, as a run does. The RINEX excerpt holds PRN
+    1, 8 and 14; at the hospital loop at 19:00 UTC only PRN 14 (49 deg) is above 30 deg."""
+    shutil.copy(REPO / "tests" / "data" / "gnss_2021-04-28" / "brdc1180.21n.excerpt", tmp_path / "brdc.21n")
+    (tmp_path / "sc.toml").write_text('name = "eph"\nduration_s = 5.0\nstart_utc = "2021-04-28T19:00:00Z"\n'
+                                      '[network]\nname = "hospital_loop"\n'
+                                      '[sensors.gnss]\nephemeris = "brdc.21n"\nelevation_mask_deg = 30.0\n')
+    elsewhere = tmp_path / "elsewhere"
+    elsewhere.mkdir()
+    cwd = os.getcwd()
+    os.chdir(elsewhere)
+    try:
+        assert main(["sky", "--scenario", str(Path("..") / "sc.toml")]) == 0
+    finally:
+        os.chdir(cwd)
+    out = capsys.readouterr().out.splitlines()
+    assert "mask 30.0 deg" in out[0] and "brdc.21n" in out[0]
+    rows = [ln.split() for ln in out[2:] if ln.strip()]
+    assert [int(r[0]) for r in rows] == [14] and abs(float(rows[0][2]) - 49.0) < 0.5
+
+
+def test_sky_piped_into_head_ends_quietly():
+    """`v2v sky ... | head -1`: the reader stops early; no BrokenPipeError traceback, the
+    status a killed-by-SIGPIPE writer has (141)."""
+    cmd = f"{shlex.quote(sys.executable)} -m v2v.cli sky --lat 45 --lon 0 --time 2021-04-28T19:00:00Z | head -c 1"
+    for _ in range(3):
+        p = subprocess.run(["bash", "-c", cmd + "; echo \" ${PIPESTATUS[0]}\" >&2"], capture_output=True, text=True,
+                           timeout=120)
+        assert "Traceback" not in p.stderr and "BrokenPipe" not in p.stderr, p.stderr
+        assert p.stderr.strip().split()[-1] in ("0", "141"), p.stderr
 
 
 @pytest.mark.sumo

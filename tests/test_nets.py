@@ -9,6 +9,7 @@ from __future__ import annotations
 
 import gzip
 import math
+import os
 import shutil
 import tomllib
 import xml.etree.ElementTree as ET
@@ -301,6 +302,33 @@ def test_files_that_are_not_sumo_nets_or_osm(tmp_path):
     with pytest.raises(UserError):
         nets.import_osm(osm, "zz", tmp_path / "mine")
     assert (tmp_path / "mine").is_dir() and not any((tmp_path / "mine").iterdir())  # a folder that was there stays
+
+
+def test_import_never_replaces_a_nets_files_and_its_outputs_are_readable(tiny, tmp_path):
+    """An import into a folder that holds files (a shipped net's sources, an earlier import:
+    `--name open_highway` without --out wrote over sumo_nets/open_highway/) is refused; --out
+    under a file is one line; an extract without a drivable road is refused at the import, not
+    at the first run; the outputs have the mode a plain open gives (0666 less the umask: they
+    were 0600, unreadable to the other users of a shared checkout)."""
+    with pytest.raises(UserError) as e:
+        nets.import_osm(TINY_OSM, "tiny", tiny.net_path.parent.parent)  # the fixture's import again
+    assert e.value.field == "--name"
+    with pytest.raises(UserError) as e:
+        nets.import_osm(TINY_OSM, "open_highway")  # the default place: the shipped net's folder
+    assert e.value.field == "--name"
+    with pytest.raises(UserError) as e:
+        nets.import_osm(TINY_OSM, "x", TINY_OSM)  # --out is a file
+    assert e.value.field == "--out"
+    footway = tmp_path / "footway.osm"
+    footway.write_text(TINY_OSM.read_text().replace('v="residential"', 'v="footway"').replace('v="secondary"', 'v="footway"'))
+    assert 'v="footway"' in footway.read_text()
+    with pytest.raises(UserError, match="no road a car can drive") as e:
+        nets.import_osm(footway, "fw", tmp_path / "out")
+    assert e.value.field == "network.osm_file" and not (tmp_path / "out").exists()
+    umask = os.umask(0o022)
+    os.umask(umask)
+    for p in (tiny.net_path, tiny.poly_path, tiny.net_path.parent / "routes.toml"):
+        assert p.stat().st_mode & 0o777 == 0o666 & ~umask, p
 
 
 def test_netconvert_failure_is_one_user_error_line(tmp_path, monkeypatch):

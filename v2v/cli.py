@@ -53,7 +53,7 @@ def build_parser() -> argparse.ArgumentParser:
     ni = nsub.add_parser("import-osm", help="turn an OpenStreetMap .osm extract into a net + buildings with heights")
     ni.add_argument("osm", type=Path, help="the .osm file")
     ni.add_argument("--name", required=True, help="name of the new net")
-    ni.add_argument("--out", type=Path, default=None, help="folder to write into (default: sumo_nets/<name>)")
+    ni.add_argument("--out", type=Path, default=None, help="folder in which <name>/ is written (default: sumo_nets); <name>/ must be new or empty")
 
     rp = sub.add_parser("replay", help="open a run's replay.rrd in the rerun viewer (or serve the web viewer)")
     rp.add_argument("run_dir", type=Path, help="a run folder (or a .rrd file)")
@@ -76,8 +76,9 @@ def build_parser() -> argparse.ArgumentParser:
     k.add_argument("--height", type=float, default=None, help="ellipsoidal height, m (default 0; -500 to 100000)")
     k.add_argument("--time", help="UTC time, ISO 8601 (e.g. 2021-04-28T19:00:00Z)")
     k.add_argument("--scenario", type=Path, help="take place and time from a scenario's network and start_utc")
-    k.add_argument("--rinex", type=Path, help="RINEX navigation file (default: the built-in nominal constellation)")
-    k.add_argument("--mask-deg", type=float, default=10.0, help="elevation mask, degrees")
+    k.add_argument("--rinex", type=Path, help="RINEX navigation file (default: the scenario's sensors.gnss.ephemeris, else the built-in nominal constellation)")
+    k.add_argument("--mask-deg", type=float, default=None,
+                   help="elevation mask, degrees (default: the scenario's sensors.gnss.elevation_mask_deg, else 10)")
     return p
 
 
@@ -154,6 +155,11 @@ def replay_command(run_dir: Path, web: bool = False, port: int = 9090) -> list[s
     rrd = run_dir if run_dir.suffix == ".rrd" else run_dir / "replay.rrd"
     if not rrd.is_file():
         raise UserError(f"no replay at {rrd}", field="RUN_DIR", fix="give a run folder written without --no-replay")
+    with rrd.open("rb") as f:
+        head = f.read(4)
+    if head != b"RRF2":  # (rerun's file header; rerun itself serves an empty viewer for a bad file)
+        raise UserError(f"{rrd} is not a rerun recording ({len(head)} byte header {head!r}, not b'RRF2')",
+                        field="RUN_DIR", fix="run the scenario again to write its replay.rrd")
     exe = shutil.which("rerun", path=str(Path(sys.executable).parent)) or shutil.which("rerun") or "rerun"
     if web:
         return [exe, "--serve-web", "--bind", "127.0.0.1", "--web-viewer-port", str(port), str(rrd)]
@@ -205,13 +211,20 @@ def _cmd_sky(args) -> int:
             raise UserError(f"{', '.join(given)} and --scenario both give the place or time", field=given[0],
                             fix="give --lat, --lon, --time (and --height), or --scenario alone")
 
-        sc = load_scenario(args.scenario)
+        from v2v.run import absolute_paths
+
+        # (its relative paths, net_file and ephemeris, are relative to its folder, as for v2v run)
+        sc = absolute_paths(load_scenario(args.scenario), Path(args.scenario).resolve().parent)
         net = resolve_network(sc)
         lat, lon = net.georef.xy_to_geodetic(0.0, 0.0)
         lat_deg, lon_deg = float(np.degrees(lat)), float(np.degrees(lon))
         h = sc.network.origin_h_m
         when = sc.start_utc
+        mask_deg = sc.sensors.gnss.elevation_mask_deg if args.mask_deg is None else args.mask_deg
+        scenario_eph = None if args.rinex is not None else sc.sensors.gnss.ephemeris
     else:
+        mask_deg = 10.0 if args.mask_deg is None else args.mask_deg
+        scenario_eph = None
         if args.lat is None or args.lon is None or args.time is None:
             raise UserError("give --lat, --lon and --time, or --scenario", field="sky", fix="e.g. v2v sky --lat 51.08 --lon -114.13 --time 2021-04-28T19:00:00Z")
         if not (-90 <= args.lat <= 90 and -180 <= args.lon <= 180):
@@ -221,16 +234,24 @@ def _cmd_sky(args) -> int:
             when = datetime.fromisoformat(args.time.replace("Z", "+00:00"))
         except ValueError:
             raise UserError(f"cannot read time {args.time!r}", field="--time", fix="ISO 8601, e.g. 2021-04-28T19:00:00Z") from None
-    if not 0.0 <= args.mask_deg < 90.0:  # (also NaN)
-        raise UserError(f"elevation mask {args.mask_deg} deg is not in [0, 90)", field="--mask-deg",
+    if not 0.0 <= mask_deg < 90.0:  # (also NaN)
+        raise UserError(f"elevation mask {mask_deg} deg is not in [0, 90)", field="--mask-deg",
                         fix="give degrees above the horizon, e.g. --mask-deg 10")
     if not -500.0 <= h <= 100e3:  # (also NaN)
         raise UserError(f"height {h} m is not near the Earth's surface", field="--height",
                         fix="give metres above the ellipsoid, from -500 to 100000")
     t_gps = utc_to_gps_s(when)
-    eph = _ephemeris(args.rinex, t_gps)
-    df = sky_view(np.radians(lat_deg), np.radians(lon_deg), h, t_gps, eph, np.radians(args.mask_deg))
-    print(f"# {lat_deg:.5f} deg, {lon_deg:.5f} deg, {h:.0f} m at {when.isoformat()} (GPS {t_gps:.0f} s); mask {args.mask_deg} deg")
+    if scenario_eph is not None:  # the scenario's sky (its RINEX file or the nominal constellation)
+        from v2v.sensors.gnss.source import ephemeris_source
+
+        eph = ephemeris_source(scenario_eph, float(t_gps), 0.0)
+    else:
+        eph = _ephemeris(args.rinex, t_gps)
+    df = sky_view(np.radians(lat_deg), np.radians(lon_deg), h, t_gps, eph, np.radians(mask_deg))
+    src = "nominal 27-slot constellation" if (scenario_eph == "nominal" or (scenario_eph is None and args.rinex is None)) \
+        else f"RINEX {scenario_eph or args.rinex}"
+    print(f"# {lat_deg:.5f} deg, {lon_deg:.5f} deg, {h:.0f} m at {when.isoformat()} (GPS {t_gps:.0f} s); "
+          f"mask {mask_deg} deg; {src}")
     print(df.to_string(index=False) if len(df) else "(no satellites in view)")
     return 0
 
@@ -261,8 +282,16 @@ def main(argv: list[str] | None = None) -> int:
     except UserError as exc:
         print(f"v2v: error: {exc.one_line()}", file=sys.stderr)
         return EXIT_USER_ERROR
+    except BrokenPipeError:  # stdout piped into e.g. head, which stopped reading: not an error
+        import os
+
+        os.dup2(os.open(os.devnull, os.O_WRONLY), sys.stdout.fileno())  # (no second error at exit's flush)
+        return 128 + signal.SIGPIPE
     except KeyboardInterrupt as exc:
         what = "terminated (SIGTERM)" if isinstance(exc, Terminated) else "interrupted"
+        if args.cmd == "replay":  # Ctrl-C is how the web viewer is stopped
+            print(f"v2v: replay viewer {what}", file=sys.stderr)
+            return 0 if not isinstance(exc, Terminated) else 128 + signal.SIGTERM
         done = _completed_run_folder(args, published_before)
         if done is not None:  # the signal came after the run's folder was whole: the run is done
             print(f"v2v: {what} after the run finished; its folder {done} is complete", file=sys.stderr)

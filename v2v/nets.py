@@ -52,7 +52,7 @@ from typing import Any, NamedTuple
 
 from v2v.errors import UserError, not_a_file
 from v2v.frames import GeoReference
-from v2v.io.atomic import first_missing
+from v2v.io.atomic import atomic_write_text, first_missing, publish
 
 NETS_DIR = Path(__file__).resolve().parents[1] / "sumo_nets"
 SHIPPED_NETS = ("open_highway", "residential", "urban_canyon", "hospital_loop")
@@ -218,11 +218,11 @@ def _read_routes(path: Path) -> dict[str, tuple[str, ...]]:
     return routes
 
 
-def _write_routes(path: Path, routes: Mapping[str, tuple[str, ...]], comment: str) -> None:
+def _routes_text(routes: Mapping[str, tuple[str, ...]], comment: str) -> str:
     lines = [f"# {comment}\n"]
     for key, edges in routes.items():
         lines.append(f"{key} = [" + ", ".join(f'"{e}"' for e in edges) + "]\n")
-    path.write_text("".join(lines))
+    return "".join(lines)
 
 
 def _atomic_target(path: Path) -> Path:
@@ -406,7 +406,7 @@ def build_net(name: str, out_dir: str | os.PathLike | None = None, *, force: boo
                 f"netconvert ({name})",
                 "network.name",
             )
-            os.replace(tmp, net_path)
+            publish(tmp, net_path)  # (with the mode a plain open gives: mkstemp's is 0600)
         finally:
             tmp.unlink(missing_ok=True)
         stamp.write_text(fp + "\n")
@@ -468,7 +468,7 @@ def resolve_heights(poly_path: Path) -> dict[str, int]:
     tmp = _atomic_target(poly_path)
     try:
         tree.write(tmp, encoding="UTF-8", xml_declaration=True)
-        os.replace(tmp, poly_path)
+        publish(tmp, poly_path)
     finally:
         tmp.unlink(missing_ok=True)
     return counts
@@ -534,15 +534,23 @@ def import_osm(osm_path: str | os.PathLike, name: str, out_root: str | os.PathLi
     geo-reference (UTM zone + netOffset). Options: :data:`OSM_OPTIONS`.
     """
     osm = Path(osm_path)
-    if not osm.is_file():
-        raise UserError(f"OSM file {osm} not found", field="network.osm_file", fix="give the path of an .osm extract")
+    why = not_a_file(osm)
+    if why is not None:
+        raise UserError(f"OSM file {osm} {why}", field="network.osm_file", fix="give the path of an .osm extract")
     if not re.fullmatch(r"[A-Za-z0-9_.-]+", name):
         raise UserError(f"bad network name {name!r}", field="network.name", fix="use letters, digits, _ . -")
     out_dir = (NETS_DIR if out_root is None else Path(out_root)) / name
     # the outermost folder this import creates (out_dir or a parent, e.g. a new --out): a failed
     # import removes it, so it leaves no empty folder behind
+    if out_dir.is_dir() and any(out_dir.iterdir()):  # (a shipped net's sources, or an earlier import)
+        raise UserError(f"{out_dir} already holds files (a shipped net or an earlier import): an import would "
+                        "replace them", field="--name", fix="choose another --name, or another --out")
     created = first_missing(out_dir)
-    out_dir.mkdir(parents=True, exist_ok=True)
+    try:
+        out_dir.mkdir(parents=True, exist_ok=True)
+    except OSError as exc:
+        raise UserError(f"cannot create {out_dir} ({exc.strerror or exc})", field="--out",
+                        fix="give a folder that can be created (OUT/<name>/ is written)") from None
     net_path = out_dir / f"{name}.net.xml"
     poly_path = out_dir / f"{name}.poly.xml"
     tmp_net = _atomic_target(net_path)
@@ -567,8 +575,14 @@ def import_osm(osm_path: str | os.PathLike, name: str, out_root: str | os.PathLi
             "network.osm_file",
         )  # fmt: skip
         resolve_heights(tmp_poly)
-        os.replace(tmp_net, net_path)
-        os.replace(tmp_poly, poly_path)
+        routes = {"default": longest_route(tmp_net)}
+        if not routes["default"]:
+            raise UserError(f"{osm} has no road a car can drive (no route of at least one edge)",
+                            field="network.osm_file", fix="give an extract with highway=residential (or larger) ways")
+        publish(tmp_net, net_path)
+        publish(tmp_poly, poly_path)
+        atomic_write_text(out_dir / "routes.toml", _routes_text(routes, f"Routes for {name}: 'default' = longest "
+                                                                        "shortest path."))
     except BaseException:
         if created is not None:
             shutil.rmtree(created, ignore_errors=True)
@@ -576,8 +590,6 @@ def import_osm(osm_path: str | os.PathLike, name: str, out_root: str | os.PathLi
     finally:
         tmp_net.unlink(missing_ok=True)
         tmp_poly.unlink(missing_ok=True)
-    routes = {"default": longest_route(net_path)}
-    _write_routes(out_dir / "routes.toml", routes, f"Routes for {name}: 'default' = longest shortest path.")
     return BuiltNet(name=name, net_path=net_path, poly_path=poly_path, routes=routes)
 
 
