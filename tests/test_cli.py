@@ -407,6 +407,16 @@ def test_sky_refuses_a_mask_or_height_that_is_not_physical(extra, field, capsys)
     assert len(err) == 1 and err[0].startswith(f"v2v: error: {field}: ") and "fix:" in err[0], err
 
 
+def test_sky_time_outside_the_ephemeris_names_time(capsys):
+    """A --time before the GPS epoch (1980-01-06), or outside the RINEX file's day, is the
+    --time option's error (not the scenario fields utc / start_utc the library names)."""
+    nav = REPO / "tests" / "data" / "gnss_2021-04-28" / "brdc1180.21n.excerpt"
+    for extra in (["--time", "1975-01-01T00:00:00Z"], ["--time", "2021-05-28T19:00:00Z", "--rinex", str(nav)]):
+        assert main(["sky", "--lat", "51", "--lon", "-114", *extra]) == 2
+        err = [ln for ln in capsys.readouterr().err.splitlines() if ln.strip()]
+        assert len(err) == 1 and err[0].startswith("v2v: error: --time: ") and "fix:" in err[0], err
+
+
 def test_sky_refuses_a_place_given_twice(capsys):
     """--scenario gives the place and time: --lat / --lon / --time / --height with it are refused, not ignored."""
     sc = Path(__file__).resolve().parents[1] / "scenarios" / "urban_canyon.toml"

@@ -240,14 +240,21 @@ def _cmd_sky(args) -> int:
     if not -500.0 <= h <= 100e3:  # (also NaN)
         raise UserError(f"height {h} m is not near the Earth's surface", field="--height",
                         fix="give metres above the ellipsoid, from -500 to 100000")
-    t_gps = utc_to_gps_s(when)
-    if scenario_eph is not None:  # the scenario's sky (its RINEX file or the nominal constellation)
-        from v2v.sensors.gnss.source import ephemeris_source
+    try:
+        t_gps = utc_to_gps_s(when)
+        if scenario_eph is not None:  # the scenario's sky (its RINEX file or the nominal constellation)
+            from v2v.sensors.gnss.source import ephemeris_source
 
-        eph = ephemeris_source(scenario_eph, float(t_gps), 0.0)
-    else:
-        eph = _ephemeris(args.rinex, t_gps)
-    df = sky_view(np.radians(lat_deg), np.radians(lon_deg), h, t_gps, eph, np.radians(mask_deg))
+            eph = ephemeris_source(scenario_eph, float(t_gps), 0.0)
+        else:
+            eph = _ephemeris(args.rinex, t_gps)
+        df = sky_view(np.radians(lat_deg), np.radians(lon_deg), h, t_gps, eph, np.radians(mask_deg))
+    except UserError as exc:  # the time's errors name the option it came from (not a scenario's start_utc)
+        if args.scenario is None and exc.field in ("utc", "start_utc"):
+            raise UserError(f"{args.time}: {exc.message}", field="--time",
+                            fix="give a time the ephemeris covers (a RINEX nav file: its day), after 1980-01-06"
+                            ) from None
+        raise
     src = "nominal 27-slot constellation" if (scenario_eph == "nominal" or (scenario_eph is None and args.rinex is None)) \
         else f"RINEX {scenario_eph or args.rinex}"
     print(f"# {lat_deg:.5f} deg, {lon_deg:.5f} deg, {h:.0f} m at {when.isoformat()} (GPS {t_gps:.0f} s); "
