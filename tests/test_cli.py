@@ -238,6 +238,16 @@ def test_nets_list(capsys):
         assert name in out
 
 
+def test_nets_build_of_an_unknown_name_names_the_argument(capsys):
+    """`v2v nets build bogus` is the NAME argument's mistake (not a scenario's network.name),
+    refused before any net is built."""
+    assert main(["nets", "build", "open_highway", "bogus"]) == 2
+    captured = capsys.readouterr()
+    err = [ln for ln in captured.err.splitlines() if ln.strip()]
+    assert len(err) == 1 and err[0].startswith("v2v: error: NAME: 'bogus' is not a shipped net") and "open_highway" in err[0]
+    assert "built" not in captured.out
+
+
 def test_shipped_scenarios_validate(capsys):
     from v2v.config.scenario import load_scenario
 
@@ -260,13 +270,19 @@ def test_replay_command_points_at_the_recording(tmp_path):
         replay_command(tmp_path)
     assert ei.value.field == "RUN_DIR"
     (tmp_path / "replay.rrd").write_bytes(b"RRF2" + bytes(60))  # rerun's file header (FourCC)
-    cmd = replay_command(tmp_path, web=True, port=9123)
+    cmd = replay_command(tmp_path, web=True, port=9123, grpc_port=9124)
     assert cmd[-1] == str(tmp_path / "replay.rrd")
-    assert "--serve-web" in cmd and cmd[cmd.index("--bind") + 1] == "127.0.0.1" and "9123" in cmd
+    assert "--serve-web" in cmd and cmd[cmd.index("--bind") + 1] == "127.0.0.1"
+    # the page's port and the gRPC server's (rerun's default 9876 would collide between two replays)
+    assert cmd[cmd.index("--web-viewer-port") + 1] == "9123" and cmd[cmd.index("--port") + 1] == "9124"
     for port in (0, 65536, 99999):  # not a TCP port: refused before the viewer starts (rerun's own error is multi-line)
-        with pytest.raises(UserError) as ei:
-            replay_command(tmp_path, web=True, port=port)
-        assert ei.value.field == "--port"
+        for kw, field in (("port", "--port"), ("grpc_port", "--grpc-port")):
+            with pytest.raises(UserError) as ei:
+                replay_command(tmp_path, web=True, **{kw: port})
+            assert ei.value.field == field
+    with pytest.raises(UserError) as ei:  # one port cannot serve both
+        replay_command(tmp_path, web=True, port=9876)
+    assert ei.value.field == "--grpc-port"
     native = replay_command(tmp_path)
     assert native[-1] == str(tmp_path / "replay.rrd") and native[native.index("--bind") + 1] == "127.0.0.1"
 
@@ -278,10 +294,43 @@ def test_replay_without_a_display_says_to_use_web(tmp_path, monkeypatch, capsys)
     for k in ("DISPLAY", "WAYLAND_DISPLAY", "WAYLAND_SOCKET"):
         monkeypatch.delenv(k, raising=False)
     monkeypatch.setattr(sys, "platform", "linux")
-    for extra, field in (([], "replay"), (["--port", "9123"], "--port")):
+    for extra, field in (([], "replay"), (["--port", "9123"], "--port"), (["--grpc-port", "9124"], "--grpc-port")):
         assert main(["replay", str(tmp_path), *extra]) == 2
         err = [ln for ln in capsys.readouterr().err.splitlines() if ln.strip()]
         assert len(err) == 1 and err[0].startswith(f"v2v: error: {field}: ") and "--web" in err[0], err
+
+
+def test_web_replay_refuses_a_port_in_use_and_names_both_ports(tmp_path, monkeypatch, capsys):
+    """A port another server listens on (a second replay: both would want rerun's gRPC port) is
+    one line naming the option, before rerun starts; the message of a web replay gives the address
+    rerun's page needs (the page reads the recording from the gRPC port) and an ssh line that
+    forwards both ports."""
+    import socket
+    import subprocess
+
+    from v2v.cli import web_viewer_url
+
+    (tmp_path / "replay.rrd").write_bytes(b"RRF2" + bytes(60))
+    with socket.socket() as busy, socket.socket() as free:
+        busy.bind(("127.0.0.1", 0))
+        busy.listen()
+        free.bind(("127.0.0.1", 0))
+        b, f = busy.getsockname()[1], free.getsockname()[1]
+        free.close()
+        for extra, field in ((["--port", str(b), "--grpc-port", str(f)], "--port"),
+                             (["--port", str(f), "--grpc-port", str(b)], "--grpc-port")):
+            assert main(["replay", str(tmp_path), "--web", *extra]) == 2
+            err = [ln for ln in capsys.readouterr().err.splitlines() if ln.strip()]
+            assert len(err) == 1 and err[0].startswith(f"v2v: error: {field}: port {b} ") and "in use" in err[0], err
+    calls = []
+    monkeypatch.setattr(subprocess, "call", lambda cmd: calls.append(cmd) or 0)
+    assert main(["replay", str(tmp_path), "--web", "--port", str(f), "--grpc-port", str(b)]) == 0
+    err = capsys.readouterr().err
+    # rerun 0.41's own "connect at" address for these ports
+    url = f"http://127.0.0.1:{f}?url=rerun%2Bhttp%3A%2F%2Flocalhost%3A{b}%2Fproxy"
+    assert web_viewer_url(f, b) == url and url in err
+    assert f"ssh -L {f}:127.0.0.1:{f} -L {b}:127.0.0.1:{b}" in err
+    assert calls and calls[0][calls[0].index("--port") + 1] == str(b)
 
 
 def _readme_scenario_block() -> str:

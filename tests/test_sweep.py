@@ -482,6 +482,15 @@ def test_value_a_run_would_refuse_stops_the_study_before_any_run(tmp_path, capsy
     assert _cli(["sweep", str(study), "--out", str(tmp_path / "o"), "--quiet"]) == 2
     line = _one_error_line(capsys, "sensors.uwb.profile")
     assert "unknown UWB radio profile 'decawave'" in line and "run sensors.uwb.profile=decawave" in line
+
+
+def test_bad_grid_value_says_it_came_from_the_study(tmp_path, capsys):
+    """A value the schema refuses names its field and says the study's [set] / [grid] set it (not
+    the command line's --set, which a study has none of)."""
+    study = _write(tmp_path / "s.toml", 'seeds = [1]\n[grid]\n"clusters.0.vehicles" = [3, -2]\n')
+    assert _cli(["sweep", str(study), "--out", str(tmp_path / "o"), "--quiet"]) == 2
+    line = _one_error_line(capsys, "clusters.0.vehicles")
+    assert "the study's [set] / [grid]" in line and "command line" not in line and "run clusters.0.vehicles=-2" in line
     assert not (tmp_path / "o").exists()
 
 

@@ -48,7 +48,7 @@ def build_parser() -> argparse.ArgumentParser:
     nsub = n.add_subparsers(dest="nets_cmd", required=True, parser_class=_Parser,
                             metavar="{build,list,import-osm}")
     nb = nsub.add_parser("build", help="(re)build the shipped nets with netconvert")
-    nb.add_argument("names", nargs="*", help="nets to build (default: all)")
+    nb.add_argument("names", nargs="*", metavar="NAME", help="nets to build (default: all)")
     nsub.add_parser("list", help="list the shipped nets")
     ni = nsub.add_parser("import-osm", help="turn an OpenStreetMap .osm extract into a net + buildings with heights")
     ni.add_argument("osm", type=Path, help="the .osm file")
@@ -59,6 +59,8 @@ def build_parser() -> argparse.ArgumentParser:
     rp.add_argument("run_dir", type=Path, help="a run folder (or a .rrd file)")
     rp.add_argument("--web", action="store_true", help="serve the web viewer on 127.0.0.1 instead of a native window")
     rp.add_argument("--port", type=int, default=None, help="web viewer port (with --web; default 9090)")
+    rp.add_argument("--grpc-port", type=int, default=None,
+                    help="port of rerun's gRPC server, which the web page reads the recording from (with --web; default 9876)")
 
     s = sub.add_parser("scenario", help="scenario files")
     ssub = s.add_subparsers(dest="scenario_cmd", required=True, parser_class=_Parser, metavar="{check}")
@@ -132,6 +134,11 @@ def _cmd_nets(args) -> int:
         return 0
     if args.nets_cmd == "build":
         names = args.names or [i.name for i in nets.list_nets()]
+        for name in names:  # (before any build; the library's error names the scenario's network.name)
+            if name not in nets.SHIPPED_NETS:
+                raise UserError(f"{name!r} is not a shipped net", field="NAME",
+                                fix=f"use one of {', '.join(nets.SHIPPED_NETS)} (v2v nets list); "
+                                    "an imported net is built by v2v nets import-osm")
         for name in names:
             built = nets.build_net(name, force=True)
             print(f"built {name}: {built.net_path}")
@@ -145,13 +152,20 @@ def _cmd_nets(args) -> int:
     raise AssertionError(args.nets_cmd)
 
 
-def replay_command(run_dir: Path, web: bool = False, port: int = 9090) -> list[str]:
+def replay_command(run_dir: Path, web: bool = False, port: int = 9090, grpc_port: int = 9876) -> list[str]:
     """The rerun command that opens a run's recording (native viewer, or web viewer; either
-    serves on loopback only: rerun's own default is every interface)."""
+    serves on loopback only: rerun's own default is every interface). The web viewer is two
+    servers: the page on ``port`` and rerun's gRPC server on ``grpc_port``, from which the page
+    (in the user's browser) reads the recording."""
     import shutil
 
-    if web and not 1 <= port <= 65535:
-        raise UserError(f"port {port} is not a TCP port", field="--port", fix="give a port in 1..65535, e.g. 9090")
+    if web:
+        for opt, p in (("--port", port), ("--grpc-port", grpc_port)):
+            if not 1 <= p <= 65535:
+                raise UserError(f"port {p} is not a TCP port", field=opt, fix="give a port in 1..65535")
+        if port == grpc_port:
+            raise UserError(f"the web page and rerun's gRPC server cannot share port {port}", field="--grpc-port",
+                            fix="give two different ports (defaults: --port 9090, --grpc-port 9876)")
     rrd = run_dir if run_dir.suffix == ".rrd" else run_dir / "replay.rrd"
     if not rrd.is_file():
         raise UserError(f"no replay at {rrd}", field="RUN_DIR", fix="give a run folder written without --no-replay")
@@ -162,24 +176,53 @@ def replay_command(run_dir: Path, web: bool = False, port: int = 9090) -> list[s
                         field="RUN_DIR", fix="run the scenario again to write its replay.rrd")
     exe = shutil.which("rerun", path=str(Path(sys.executable).parent)) or shutil.which("rerun") or "rerun"
     if web:
-        return [exe, "--serve-web", "--bind", "127.0.0.1", "--web-viewer-port", str(port), str(rrd)]
+        return [exe, "--serve-web", "--bind", "127.0.0.1", "--web-viewer-port", str(port), "--port", str(grpc_port),
+                str(rrd)]
     return [exe, "--bind", "127.0.0.1", str(rrd)]
+
+
+def web_viewer_url(port: int, grpc_port: int) -> str:
+    """The address that opens the web viewer on the recording (rerun prints the same one)."""
+    from urllib.parse import quote
+
+    return f"http://127.0.0.1:{port}?url=" + quote(f"rerun+http://localhost:{grpc_port}/proxy", safe="")
+
+
+def _port_in_use(port: int) -> bool:
+    """Whether a server already listens on 127.0.0.1:``port`` (another replay, another program)."""
+    import socket
+
+    with socket.socket(socket.AF_INET, socket.SOCK_STREAM) as s:
+        s.setsockopt(socket.SOL_SOCKET, socket.SO_REUSEADDR, 1)  # (what rerun's server sets: TIME_WAIT is no conflict)
+        try:
+            s.bind(("127.0.0.1", port))
+        except OSError:
+            return True
+    return False
 
 
 def _cmd_replay(args) -> int:
     import os
     import subprocess
 
-    if args.port is not None and not args.web:
-        raise UserError("--port is the web viewer's", field="--port", fix="add --web, or leave --port out")
+    for opt, val in (("--port", args.port), ("--grpc-port", args.grpc_port)):
+        if val is not None and not args.web:
+            raise UserError(f"{opt} is the web viewer's", field=opt, fix=f"add --web, or leave {opt} out")
     port = 9090 if args.port is None else args.port
-    cmd = replay_command(args.run_dir, args.web, port)
+    grpc_port = 9876 if args.grpc_port is None else args.grpc_port
+    cmd = replay_command(args.run_dir, args.web, port, grpc_port)
+    ssh = f"ssh -L {port}:127.0.0.1:{port} -L {grpc_port}:127.0.0.1:{grpc_port}"
     if not args.web and sys.platform.startswith("linux") and not any(
             os.environ.get(k) for k in ("DISPLAY", "WAYLAND_DISPLAY", "WAYLAND_SOCKET")):
         raise UserError("no display for the native viewer (DISPLAY and WAYLAND_DISPLAY are not set)", field="replay",
-                        fix=f"use --web and open http://127.0.0.1:{port} (on a remote machine through ssh -L {port}:127.0.0.1:{port})")
+                        fix=f"use --web and open {web_viewer_url(port, grpc_port)} (on a remote machine through {ssh})")
     if args.web:
-        print(f"serving the web viewer on http://127.0.0.1:{port} (Ctrl-C to stop)", file=sys.stderr)
+        for opt, p in (("--port", port), ("--grpc-port", grpc_port)):
+            if _port_in_use(p):
+                raise UserError(f"port {p} on 127.0.0.1 is in use (another replay?)", field=opt,
+                                fix=f"stop what listens there or give {opt} another port")
+        print(f"serving the web viewer: open {web_viewer_url(port, grpc_port)} (the page on port {port}, the recording "
+              f"on {grpc_port}; from another machine: {ssh}; Ctrl-C to stop)", file=sys.stderr)
     return subprocess.call(cmd)
 
 

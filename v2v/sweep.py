@@ -283,7 +283,8 @@ def load_study(path: str | Path) -> Study:
         grid_ov = [f"{k}={toml_inline(grid[k][i])}" for k, i in zip(keys, combo, strict=True)]
         desc = ", ".join(f"{k}={v}" for k, v in labels.items()) or "the base scenario"
         try:
-            first = load_scenario(base, [*fixed_ov, *grid_ov, f"seed={seeds[0]}"])
+            first = load_scenario(base, [*fixed_ov, *grid_ov, f"seed={seeds[0]}"],
+                                  overrides_from="the study's [set] / [grid]")
             # what the run's set-up checks (network, sky, faults' PRNs), once per distinct input
             key = first.model_dump_json(include={"network", "sensors", "start_utc", "duration_s", "faults"})
             if key not in checked:

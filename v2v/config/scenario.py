@@ -458,8 +458,11 @@ def load_default_dict() -> dict[str, Any]:
         return tomllib.load(f)
 
 
-def load_scenario(path: str | Path | None = None, overrides: list[str] | tuple[str, ...] = ()) -> Scenario:
+def load_scenario(path: str | Path | None = None, overrides: list[str] | tuple[str, ...] = (), *,
+                  overrides_from: str = "the command line's --set / --seed") -> Scenario:
     """Load, layer and validate a scenario. ``path=None`` gives the built-in default.
+    ``overrides`` are ``key=value`` paths; ``overrides_from`` says where they came from in the
+    errors (a study passes "the study's [set] / [grid]").
 
     Raises :class:`UserError` (one line, naming the field) for every user mistake.
     """
@@ -480,7 +483,7 @@ def load_scenario(path: str | Path | None = None, overrides: list[str] | tuple[s
     for ov in overrides:
         data = apply_override(data, ov)
     if overrides:
-        source += " with the command line's --set / --seed"
+        source += f" with {overrides_from}"
     try:
         return Scenario.model_validate(data)
     except ValidationError as err:
