@@ -239,6 +239,24 @@ def test_same_seed_bit_identical_outputs(short_run, tmp_path):
     assert json.dumps(strip(summary), default=str) == json.dumps(strip(res2.summary), default=str)
 
 
+def test_saving_measurements_does_not_change_the_estimates(tmp_path):
+    """``--save-measurements`` only adds a file: the epochs and truth are those of the same run
+    without it (README, Conventions: same seed, same outputs), also when it synthesizes the
+    UWB ranges and bearings of sensors no solution uses and the V2V link loses and delays
+    messages (the exchange draws a loss and a latency per message it carries)."""
+    sets = ["duration_s=8.0", 'solutions=[{name="GPS", sensors=["gnss"]}]', "exchange.loss_probability=0.3",
+            "exchange.latency_s=0.05"]
+    off = run_scenario(load_scenario(None, sets), tmp_path / "off", quiet=True, replay=False)
+    on = run_scenario(load_scenario(None, sets), tmp_path / "on", quiet=True, replay=False, save_measurements=True)
+    types = set(pd.read_parquet(tmp_path / "on" / "measurements.parquet")["type"])
+    assert {"pseudorange", "uwb", "bearing"} <= types  # the file has the sensors no solution uses
+    for name in ("epochs.parquet", "truth.parquet"):
+        pd.testing.assert_frame_equal(pd.read_parquet(tmp_path / "off" / name), pd.read_parquet(tmp_path / "on" / name),
+                                      check_exact=True)
+    assert on.summary["exchange"] == off.summary["exchange"]  # only GNSS messages on the link either way
+    assert on.summary["statistics"] == off.summary["statistics"]
+
+
 def test_other_seed_changes_measurements(short_run, tmp_path):
     out, _ = short_run
     out3 = tmp_path / "seed8"

@@ -370,7 +370,8 @@ def _run_scenario(scenario: Scenario, out_dir: Path, *, quiet: bool, replay: boo
         chunk = math.inf
     events_log: list[dict[str, Any]] = []
     event_counts = {k.value: 0 for k in EventKind}
-    used = {s for sol in scenario.solutions for s in sol.sensors}
+    filtered = {s for sol in scenario.solutions for s in sol.sensors}  # the sensors whose messages go to the lead
+    used = set(filtered)  # the sensors synthesized
     if save_measurements:  # a user saving measurements wants every enabled sensor's
         used |= {name for name in ("uwb", "bearing") if getattr(scenario.sensors, name).enabled}
     with RunFolder(Path(out_dir)) as tmp:
@@ -522,8 +523,10 @@ def _run_scenario(scenario: Scenario, out_dir: Path, *, quiet: bool, replay: boo
                 for cl in clusters:
                     for t, eps in epochs:
                         cl.stream.add_gnss(t, {v: e for v, e in eps.items() if v in cl.members})
-                    cl.stream.add_uwb(uwb)
-                    cl.stream.add_bearings(bearings)
+                    # only what a solution uses goes on the V2V link: the measurements saved for the user
+                    # alone would take the exchange's loss / latency draws and change the epochs
+                    cl.stream.add_uwb(uwb if "uwb" in filtered else None)
+                    cl.stream.add_bearings(bearings if "bearing" in filtered else None)
                     for t in grid_times:
                         st = truth_at(t)
                         if st is not None and cl.lead in st.vehicles:
