@@ -300,6 +300,22 @@ def test_vehicle_leaving_and_rejoining_the_cluster(tmp_path):
     assert back["across_err_m"].abs().max() < 1.0
     # the other follower never left
     assert ep[ep.vehicle == "c1.1"]["initialized"].iloc[20:].all()
+    # README (Outputs): a row with initialized False has the truth only. While the vehicle is out of
+    # the filter its rows keep the truth (relative ENU at the lead, from truth.parquet's ECEF), its
+    # lanes, no update and no integrity, and the table keeps its types: whole counts, flags as bool
+    truth = pd.read_parquet(tmp_path / "r" / "truth.parquet").set_index(["t_s", "vehicle"])
+    for t, row in gone.iloc[[0, -1]].iterrows():
+        lead, veh = truth.loc[(t, "c1.0")], truth.loc[(t, "c1.2")]
+        ecef = ["ecef_x_m", "ecef_y_m", "ecef_z_m"]
+        rel = ecef_to_enu(veh[ecef].to_numpy(float), np.radians(lead.lat_deg), np.radians(lead.lon_deg),
+                          lead[ecef].to_numpy(float))
+        np.testing.assert_allclose(row[["true_e_m", "true_n_m", "true_u_m"]].to_numpy(float), rel, atol=1e-6)
+        assert row["true_lane_index"] == veh.lane_index and row["lane_width_m"] == veh.lane_width_m
+    assert gone[["est_e_m", "along_err_m", "sigma_along_m", "cov_ee_m2", "nees_pos"]].isna().all().all()
+    assert (gone.filter(regex="^(used|rejected)_").to_numpy() == 0).all() and not gone["integrity_available"].any()
+    assert ep.dtypes["integrity_available"] == np.bool_ and ep.dtypes["initialized"] == np.bool_
+    ints = ["true_lane_index", "lead_lane_index", *ep.filter(regex="^(used|rejected)_").columns]
+    assert all(ep.dtypes[c] == np.int64 for c in ints), ep.dtypes[ints]
 
 
 def test_gnss_outage_height_aiding_on_and_off(tmp_path):

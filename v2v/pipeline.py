@@ -1193,18 +1193,27 @@ def _epoch_record(name: str, t_s: float, ekf: ClusterEkf, step: TrafficStep, lea
             azimuth_err=[_azimuth_err(ekf, v, st) for v, st in zip(est_v, sts, strict=True)] if has_az[0] else None,
             lead_azimuth_err=lead_az)
     num = dict(zip(est_v, nums.tolist(), strict=True)) if est_v else {}
+    gone = [v for v in present if v not in lay.vehicles]
+    if gone:  # left the cluster (as the lead sees it): the truth only, as an uninitialized vehicle's row
+        sts = [step.vehicles[v] for v in gone]
+        a = float(lead_st.azimuth_rad)
+        k = len(gone)
+        truth_only = epoch_errors(  # (no state of theirs: a placeholder the kernel does not use when not ready)
+            np.zeros(6), np.eye(6), np.zeros(k, dtype=np.int64), np.full(k, 3, dtype=np.int64),
+            np.array([st.ecef_m for st in sts], dtype=float), np.asarray(lead_st.ecef_m, dtype=float),
+            ecef_to_enu_rotation(lead_st.lat_rad, lead_st.lon_rad), np.array([st.vel_enu_mps for st in sts], dtype=float),
+            np.asarray(lead_st.vel_enu_mps, dtype=float), float(np.sin(a)), float(np.cos(a)), np.zeros(k, dtype=bool))
+        num.update(zip(gone, truth_only.tolist(), strict=True))
     rows = []
     for v in vehicles:
         st = step.vehicles.get(v)
         if st is None:
             continue
-        if v not in lay.vehicles:  # left the cluster (as the lead sees it): a row without an estimate
-            row: dict[str, Any] = {"t_s": t_s, "solution": name, "vehicle": v, "initialized": False}
-            if lead_az is not None:
-                row["lead_azimuth_err_rad"] = lead_az
-            rows.append(row)
-            continue
         c = counts.get(v, {})
+        if v not in lay.vehicles:  # no estimate, no update, no integrity screen, no azimuth state
+            rows.append(_vehicle_row(t_s, name, v, False, num[v], st.lane_index, lead_st.lane_index, st.lane_width_m,
+                                     count_keys, [c.get(key, 0) for key in count_keys], False, None, lead_az))
+            continue
         rows.append(_vehicle_row(t_s, name, v, ekf.is_initialized(v), num[v], st.lane_index, lead_st.lane_index,
                                  st.lane_width_m, count_keys, [c.get(key, 0) for key in count_keys],
                                  bool(integrity.get(v, False)),
