@@ -63,6 +63,45 @@ def test_readme_names_every_summary_key_and_filter_counter(short_run):
     assert not missing, f"filter counters not in the README: {missing}"
 
 
+def _readme_column_names(text: str) -> tuple[set[str], list[str]]:
+    """The column names a README text gives in backticks: plain names (several to a pair of
+    backticks, space-separated), ``true_e/n/u_m`` expanded to ``true_e_m true_n_m true_u_m``,
+    and the patterns ``ecef_*_m`` / ``err_<component>_m`` as regular expressions."""
+    import re
+
+    names, patterns = set(), []
+    for token in re.findall(r"`([^`]+)`", text):
+        for part in token.split():
+            if "*" in part or "<" in part:
+                patterns.append("^" + "[a-z_]+".join(re.escape(x) for x in re.split(r"\*|<[a-z]+>", part)) + "$")
+            elif "/" in part:
+                pieces = part.split("/")
+                prefix = pieces[0][: pieces[0].rindex("_") + 1]
+                suffix = pieces[-1][pieces[-1].index("_"):]
+                alts = [pieces[0][len(prefix):], *pieces[1:-1], pieces[-1][: -len(suffix)]]
+                names |= {prefix + a + suffix for a in alts}
+            else:
+                names.add(part)
+    return names, patterns
+
+
+def test_readme_names_every_column_of_the_tables(short_run):
+    """README, Outputs: every column truth.parquet, epochs.parquet and measurements.parquet hold
+    is named in the table's row of its file (the reference for code that reads them)."""
+    import re
+    from pathlib import Path
+
+    readme = (Path(__file__).resolve().parents[1] / "README.md").read_text()
+    rows = {line.split("|")[1].strip(" `"): line for line in readme.splitlines() if line.startswith("| `")}
+    out, _ = short_run
+    for name in ("truth.parquet", "epochs.parquet", "measurements.parquet"):
+        names, patterns = _readme_column_names(rows[name])
+        assert {"t_s", "vehicle"} <= names and (name != "measurements.parquet" or patterns)
+        columns = pd.read_parquet(out / name).columns
+        missing = [c for c in columns if c not in names and not any(re.match(p, c) for p in patterns)]
+        assert not missing, f"{name}: columns not in the README: {missing}"
+
+
 def test_stage_timings_are_disjoint_and_the_replay_has_its_own(short_run, tmp_path):
     """summary.json's stages are disjoint parts of the wall time (their sum cannot exceed it;
     measurements_io, with --save-measurements, is the part of metrics_io that writes them),

@@ -4,8 +4,11 @@ Columns: ``t_s``, ``type`` (``pseudorange`` | ``uwb`` | ``bearing``), ``vehicle`
 initiator / measuring vehicle), ``other`` (UWB responder or bearing target, else empty),
 ``prn`` (-1 if none), ``value`` (pseudorange m, range m, bearing rad), ``true_value``,
 ``los``; GNSS extras ``doppler_mps``, ``carrier_cycles``, ``elevation_rad``,
-``azimuth_rad``, ``cn0_dbhz``, ``ambiguity_cycles``; and one ``err_<component>_m`` column per
-error component of either sensor (NaN where it does not apply).
+``azimuth_rad``, ``cn0_dbhz``, ``ambiguity_cycles``; bearing extras ``azimuth_reported_rad``
+(the measuring vehicle's azimuth as it reports it) and ``true_azimuth_rad``; and one
+``err_<component>_m`` column per error component of either sensor (NaN where it does not
+apply). A UWB range's ``t_s`` is the time tag its initiator logged (true time plus the radio's
+time-tag error), and its ``true_value`` the true range at that time tag.
 """
 
 from __future__ import annotations
