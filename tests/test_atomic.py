@@ -123,3 +123,33 @@ def test_a_failed_run_removes_the_parent_folders_it_made_but_not_the_users(tmp_p
         with RunFolder(tmp_path / "a" / "b" / "run"):
             raise RuntimeError("the run failed")
     assert sorted(p.name for p in (tmp_path / "a").iterdir()) == ["notes.txt"]
+
+
+def test_an_interrupt_while_a_run_replaces_the_previous_one_leaves_a_whole_folder(tmp_path, monkeypatch):
+    """README (The command line): a run replaces a previous run's folder at --out, and a Ctrl-C
+    or SIGTERM that lands after the new folder is complete keeps it. One that lands between
+    moving the previous folder aside and moving the new one in waits for the second move: the
+    folder at --out is whole (the new run's) and the interrupt is raised after it, never a
+    missing folder with the two runs in hidden ones."""
+    import signal
+
+    import v2v.io.atomic as atomic
+    from v2v.errors import signals_as_interrupts
+
+    final = tmp_path / "run"
+    final.mkdir()
+    (final / "summary.json").write_text('"previous"')
+    real_replace, calls = os.replace, []
+
+    def replace_then_interrupt(src, dst):
+        real_replace(src, dst)
+        calls.append(dst)
+        if len(calls) == 1:  # the previous folder is aside: Ctrl-C now
+            os.kill(os.getpid(), signal.SIGINT)
+
+    monkeypatch.setattr(atomic.os, "replace", replace_then_interrupt)
+    with signals_as_interrupts(), pytest.raises(KeyboardInterrupt):
+        with RunFolder(final) as tmp:
+            (tmp / "summary.json").write_text('"new"')
+    assert len(calls) == 2 and (final / "summary.json").read_text() == '"new"'
+    assert final.resolve() in atomic.PUBLISHED  # what the command line reports as a complete run

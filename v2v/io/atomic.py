@@ -5,11 +5,12 @@ A reader (or a crashed run) never sees a half-written file that looks whole.
 
 from __future__ import annotations
 
+import contextlib
 import json
 import os
 import shutil
 import tempfile
-from collections.abc import Callable
+from collections.abc import Callable, Iterator
 from pathlib import Path
 from typing import Any
 
@@ -209,10 +210,29 @@ class RunFolder:
         if self.final.exists():
             old = self.final.with_name(f".{self.final.name}.old")
             shutil.rmtree(old, ignore_errors=True)
-            os.replace(self.final, old)
-            os.replace(self.staging, self.final)
-            PUBLISHED.append(self.final)
+            with _signals_held():  # (an interrupt between the renames would leave no folder at final)
+                os.replace(self.final, old)
+                os.replace(self.staging, self.final)
+                PUBLISHED.append(self.final)
             shutil.rmtree(old, ignore_errors=True)
         else:
             os.replace(self.staging, self.final)
             PUBLISHED.append(self.final)
+
+
+@contextlib.contextmanager
+def _signals_held() -> Iterator[None]:
+    """SIGINT and SIGTERM blocked inside (where the platform can block them: on the main
+    thread of a POSIX system); one that arrives meanwhile is delivered, and raises as usual,
+    once the block is done."""
+    import signal
+    import threading
+
+    if not hasattr(signal, "pthread_sigmask") or threading.current_thread() is not threading.main_thread():
+        yield
+        return
+    before = signal.pthread_sigmask(signal.SIG_BLOCK, {signal.SIGINT, signal.SIGTERM})
+    try:
+        yield
+    finally:
+        signal.pthread_sigmask(signal.SIG_SETMASK, before)
