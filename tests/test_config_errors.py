@@ -4,6 +4,7 @@ with --set, and a fix that says what is allowed. Never a silent coercion or a si
 
 from __future__ import annotations
 
+import math
 import subprocess
 import sys
 from pathlib import Path
@@ -153,3 +154,45 @@ def test_the_cli_says_each_mistake_in_one_line_exit_2(tmp_path):
         assert p.returncode == 2 and len(lines) == 1 and "Traceback" not in p.stderr, p.stderr
         assert lines[0].startswith(f"v2v: error: {field}: ") and " -- fix: " in lines[0], lines[0]
         assert p.stdout == ""
+
+
+@pytest.mark.parametrize(("fault", "field", "fix"), [
+    # a field the kind does not act on is not silently ignored (prns on a pr_blunder blundered every satellite)
+    ('{kind="pr_blunder", start_s=1.0, duration_s=2.0, size_m=30.0, prns=[5]}', "faults.0.prns", "remove prns"),
+    ('{kind="clock_jump", start_s=1.0, probability=0.5}', "faults.0.probability", "remove probability"),
+    ('{kind="gnss_outage", start_s=1.0, duration_s=1.0, sensor="uwb"}', "faults.0.sensor", "remove sensor"),
+    ('{kind="satellites_lost", start_s=1.0, duration_s=1.0, prns=[3], size_cycles=2}', "faults.0.size_cycles",
+     "remove size_cycles"),
+    # non-finite sizes: NaN/Inf measurements are the nonfinite kind's (its size_m: inf for +Inf, else NaN)
+    ('{kind="pr_blunder", start_s=1.0, duration_s=2.0, size_m=nan}', "faults.0.size_m", "give a finite size_m"),
+    ('{kind="clock_jump", start_s=1.0, size_m=inf}', "faults.0.size_m", "give a finite size_m"),
+    ('{kind="uwb_scale_drift", start_s=1.0, scale_ppm=nan}', "faults.0.scale_ppm", "give a finite scale_ppm"),
+    ('{kind="nonfinite", start_s=1.0, duration_s=1.0, size_m=-inf}', "faults.0.size_m", "give size_m = inf"),
+    ('{kind="nonfinite", start_s=1.0, duration_s=1.0, size_m=5.0}', "faults.0.size_m", "give size_m = inf"),
+    # a slip beyond int64 was an OverflowError traceback in the run
+    ('{kind="cycle_slip", start_s=1.0, size_cycles=100000000000000000000}', "faults.0.size_cycles", "use a value <="),
+    ('{kind="satellites_lost", start_s=1.0, duration_s=1.0, prns=[5, -3]}', "faults.0.prns.1", "use a value >= 1"),
+    ('{kind="satellites_lost", start_s=1.0, duration_s=1.0, prns=[5, 99]}', "faults.0.prns.1", "use a value <= 32"),
+    # what a kind needs names the field it needs, with a fix
+    ('{kind="satellites_lost", start_s=1.0, duration_s=1.0}', "faults.0.prns", "give prns"),
+    ('{kind="satellites_lost", start_s=1.0, prns=[3]}', "faults.0.duration_s", "give duration_s"),
+    ('{kind="cycle_slip", start_s=1.0}', "faults.0.size_cycles", "give size_cycles"),
+    ('{kind="uwb_replace", start_s=1.0}', "faults.0.vehicles", "give e.g. vehicles"),
+])
+def test_a_fault_field_its_kind_ignores_or_cannot_use_is_refused(fault, field, fix):
+    err = _error(f"faults=[{fault}]")
+    assert err.field == field and err.fix.startswith(fix), err.one_line()
+
+
+def test_fault_fields_a_kind_uses_and_nonfinite_sizes_are_accepted(tmp_path):
+    faults = ('faults=[{kind="nonfinite", start_s=1.0, duration_s=1.0, sensor="uwb", size_m=inf, probability=0.5}, '
+              '{kind="nonfinite", start_s=1.0, duration_s=1.0, size_m=nan}, '
+              '{kind="cycle_slip", start_s=1.0, size_cycles=-2, prns=[4]}, '
+              '{kind="uwb_replace", start_s=1.0, vehicles=["c1.1"], size_m=0.4, scale_ppm=3000.0}, '
+              '{kind="satellites_lost", start_s=1.0, duration_s=1.0, prns=[1, 32]}]')
+    sc = load_scenario(None, [faults])
+    assert [f.kind for f in sc.faults] == ["nonfinite", "nonfinite", "cycle_slip", "uwb_replace", "satellites_lost"]
+    resolved = tmp_path / "scenario.resolved.toml"  # (every field written, its defaults included)
+    resolved.write_text(sc.to_toml())
+    again = load_scenario(resolved).faults
+    assert again[0] == sc.faults[0] and again[2:] == sc.faults[2:] and math.isnan(again[1].size_m)  # (nan != nan)
