@@ -363,7 +363,9 @@ def figure_outage(ts: pd.DataFrame, start_s: float, end_s: float, path: Path) ->
 
 
 def parse_args(argv: list[str] | None) -> argparse.Namespace:
-    ap = argparse.ArgumentParser(description=__doc__.splitlines()[0])
+    from v2v.errors import ScriptArgumentParser
+
+    ap = ScriptArgumentParser(description=__doc__.splitlines()[0])
     ap.add_argument("--out", type=Path, required=True, help="output folder")
     ap.add_argument("--seed", type=int, default=1)
     full = {"duration_s": 45.0, "converge_s": 20.0, "vehicles": list(range(2, 11)), "vehicles_3lanes": [3, 6, 9],
