@@ -154,6 +154,30 @@ def _low_prns(folder: Path, t0: float, keep: int) -> tuple[list[int], float]:
     return low, mask
 
 
+def _degraded_duration_s(args: argparse.Namespace) -> float:
+    return 100.0 if args.quick else 180.0
+
+
+def _degraded_base(args: argparse.Namespace) -> list[str]:
+    """The degraded-sky runs' overrides (without seed, solutions and faults)."""
+    return ['network.name="open_highway"', f"duration_s={_degraded_duration_s(args)}", "clusters.0.vehicles=3",
+            f"clusters.0.lanes={args.lanes}", f"clusters.0.time_gap_s={args.time_gap_s}",
+            f"sensors.uwb.profile=\"{args.uwb_profile}\"", "background.vehicles_per_hour=0.0"]
+
+
+def check_degraded_options(args: argparse.Namespace) -> None:
+    """The UserError a degraded-sky run would raise for the options only it uses (--lanes,
+    --time-gap-s) or for its solutions: found before any part runs, not after the first part's
+    runs and files."""
+    from v2v.config.scenario import load_scenario
+    from v2v.run import check_scenario
+
+    sols = _phase_solutions(args.uwb_sigma_m, bearing=False, extra=args.solution_set)
+    for seed in args.seeds:
+        sc = load_scenario(None, [*_degraded_base(args), f"seed={seed}", sols])
+    check_scenario(sc)  # (the net and the lanes on its route: the same for every seed)
+
+
 def part_degraded(args: argparse.Namespace, out: Path) -> tuple[pd.DataFrame, pd.DataFrame]:
     """Two variants per seed, both with only the ``keep`` highest satellites:
 
@@ -163,11 +187,9 @@ def part_degraded(args: argparse.Namespace, out: Path) -> tuple[pd.DataFrame, pd
       the mask; later every satellite of both followers slips (the ambiguities must be found
       again with the satellites left).
     """
-    dur = 100.0 if args.quick else 180.0
+    dur = _degraded_duration_s(args)
     t_mask, t_slip = 60.0, 60.0 + (20.0 if args.quick else 40.0)
-    base = ['network.name="open_highway"', f"duration_s={dur}", "clusters.0.vehicles=3",
-            f"clusters.0.lanes={args.lanes}", f"clusters.0.time_gap_s={args.time_gap_s}",
-            f"sensors.uwb.profile=\"{args.uwb_profile}\"", "background.vehicles_per_hour=0.0"]
+    base = _degraded_base(args)
     rows, ttff = [], []
     for seed in args.seeds:
         probe = _run(base + [f"seed={seed}", "solutions=[]"], out / "runs" / f"degraded_probe_seed{seed}", save=True)
@@ -272,7 +294,9 @@ def _md(df: pd.DataFrame) -> str:
 
 
 def main(argv: list[str] | None = None) -> int:
-    ap = argparse.ArgumentParser(description=__doc__.split("\n")[0])
+    from v2v.errors import ScriptArgumentParser
+
+    ap = ScriptArgumentParser(description=__doc__.split("\n")[0])
     ap.add_argument("--out", required=True, type=Path)
     ap.add_argument("--seeds", type=int, nargs="+", default=[1, 2, 3])
     ap.add_argument("--uwb-profile", default="tdc", choices=["tdc", "mssi", "ideal"])
@@ -296,6 +320,8 @@ def main(argv: list[str] | None = None) -> int:
     check_positive(args.keep, "--keep")
     if args.quick:
         args.seeds = args.seeds[:1]
+    if "degraded" in args.parts:
+        check_degraded_options(args)
     out: Path = args.out
     from v2v.io.atomic import make_folder
 

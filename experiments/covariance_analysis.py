@@ -363,7 +363,9 @@ def figure_outage(ts: pd.DataFrame, start_s: float, end_s: float, path: Path) ->
 
 
 def parse_args(argv: list[str] | None) -> argparse.Namespace:
-    ap = argparse.ArgumentParser(description=__doc__.splitlines()[0])
+    from v2v.errors import ScriptArgumentParser
+
+    ap = ScriptArgumentParser(description=__doc__.splitlines()[0])
     ap.add_argument("--out", type=Path, required=True, help="output folder")
     ap.add_argument("--seed", type=int, default=1)
     full = {"duration_s": 45.0, "converge_s": 20.0, "vehicles": list(range(2, 11)), "vehicles_3lanes": [3, 6, 9],
@@ -390,8 +392,42 @@ def parse_args(argv: list[str] | None) -> argparse.Namespace:
     return args
 
 
+def outage_duration_s(args: argparse.Namespace) -> float:
+    """An outage run's length: the outage's end and 2 s (--quick) or 15 s after it."""
+    return args.outage_start_s + args.outage_duration_s + (2.0 if args.quick else 15.0)
+
+
+def check_options(args: argparse.Namespace) -> None:
+    """The UserError a run of any part would raise for the options, before the first part runs
+    (a bad --outage-start-s was found after the vehicle, lane and quality sweeps had run and written
+    their tables); --converge-s must leave epochs to average."""
+    import math
+
+    from v2v.config.scenario import load_scenario
+    from v2v.errors import UserError, check_positive
+
+    check_positive(args.outage_duration_s, "--outage-duration-s")
+    if not (args.outage_start_s >= 0.0 and math.isfinite(args.outage_start_s)):
+        raise UserError(f"{args.outage_start_s!r} is not a time >= 0 s", field="--outage-start-s",
+                        fix="give --outage-start-s >= 0 (seconds after the cluster is on the road)")
+    if not 0.0 <= args.converge_s < args.duration_s:
+        raise UserError(f"{args.converge_s:g} s is not in [0, duration) = [0, {args.duration_s:g})", field="--converge-s",
+                        fix=f"give 0 <= --converge-s < --duration-s ({args.duration_s:g} s)")
+    cases = [Case(sweep="vehicles", label="check", x=n, vehicles=n, lanes=lanes, duration_s=args.duration_s)
+             for ns, lanes in ((args.vehicles, (0,)), (args.vehicles_3lanes, (0, 1, 2))) for n in ns]
+    if not args.quick:
+        cases.append(Case(sweep="lanes", label="check", x=3, vehicles=args.lanes_vehicles, lanes=(0, 1, 2),
+                          duration_s=args.duration_s))
+    cases += [Case(sweep="outage", label="check", x=n, vehicles=n, lanes=(0,), duration_s=outage_duration_s(args),
+                   height_aiding_sigma_m=1.0, outage=(args.outage_start_s, args.outage_duration_s))
+              for n in args.outage_vehicles]
+    for c in cases:
+        load_scenario(None, c.overrides(args.seed))
+
+
 def main(argv: list[str] | None = None) -> int:
     args = parse_args(argv)
+    check_options(args)
     out: Path = args.out
     from v2v.io.atomic import make_folder
 
@@ -462,7 +498,7 @@ def main(argv: list[str] | None = None) -> int:
     # (d) GNSS outage
     print("(d) GNSS outage", file=sys.stderr)
     t0, t1 = args.outage_start_s, args.outage_start_s + args.outage_duration_s
-    odur = t1 + (2.0 if args.quick else 15.0)
+    odur = outage_duration_s(args)
     stats, series = [], []
     variants = [("height-aided", True)] + ([] if args.quick else [("pipeline", False)])
     for n in args.outage_vehicles:

@@ -67,7 +67,6 @@ error of the first target vehicle around each real-world fault) into ``--out``.
 
 from __future__ import annotations
 
-import argparse
 import contextlib
 import copy
 import json
@@ -538,7 +537,9 @@ MD_COLUMNS = ("fault", "world", "solution", "detected", "latency_s", "max_along_
 
 
 def main(argv: list[str] | None = None) -> int:
-    ap = argparse.ArgumentParser(description=__doc__.split("\n\n")[0])
+    from v2v.errors import ScriptArgumentParser
+
+    ap = ScriptArgumentParser(description=__doc__.split("\n\n")[0])
     ap.add_argument("--out", type=Path, required=True, help="output folder")
     ap.add_argument("--quick", action="store_true", help="3 real faults (30 s runs), no clean runs, 300 blunder trials per size")
     ap.add_argument("--faults", nargs="*", choices=sorted(FAULTS), help="subset of real-scenario fault kinds")

@@ -24,7 +24,6 @@ Run::
 
 from __future__ import annotations
 
-import argparse
 import importlib.util
 import sys
 from pathlib import Path
@@ -80,7 +79,9 @@ def main(argv: list[str] | None = None) -> int:
     from v2v.apps.fcw import FcwConfig, antenna_arms_x_m, fcw_study, to_markdown
 
     ll = _lane_level_module()
-    ap = argparse.ArgumentParser(description=__doc__.split("\n\n")[0])
+    from v2v.errors import ScriptArgumentParser
+
+    ap = ScriptArgumentParser(description=__doc__.split("\n\n")[0])
     ll.add_common_arguments(ap, duration_s=180.0, vehicles=4)
     ap.add_argument("--ttc-threshold-s", dest="ttc", type=float, default=FcwConfig().ttc_threshold_s)
     args = ap.parse_args(argv)

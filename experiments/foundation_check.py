@@ -36,7 +36,6 @@ plus the run folders under ``runs/``. ``--quick``: one 30 s, 3-vehicle run on
 
 from __future__ import annotations
 
-import argparse
 import math
 import sys
 import tempfile
@@ -356,7 +355,9 @@ def write_outputs(rows: list[Row], out: Path) -> None:
 
 
 def main(argv: list[str] | None = None) -> int:
-    p = argparse.ArgumentParser(description=__doc__.splitlines()[0])
+    from v2v.errors import ScriptArgumentParser
+
+    p = ScriptArgumentParser(description=__doc__.splitlines()[0])
     p.add_argument("--out", type=Path, required=True, help="output folder")
     p.add_argument("--quick", action="store_true", help="one short 3-vehicle run on one net (smoke test)")
     p.add_argument("--duration", type=float, default=None, help="simulated seconds per run (default 120, quick 30)")

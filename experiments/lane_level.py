@@ -113,9 +113,11 @@ def add_common_arguments(ap: argparse.ArgumentParser, *, duration_s: float, vehi
 
 def main(argv: list[str] | None = None) -> int:
     from v2v.apps.fcw import to_markdown
+    from v2v.errors import ScriptArgumentParser
     from v2v.metrics.lane import ACROSS_ALERT_LIMIT_M, lane_level_table
 
-    ap = argparse.ArgumentParser(description=__doc__.split("\n\n")[0])
+
+    ap = ScriptArgumentParser(description=__doc__.split("\n\n")[0])
     add_common_arguments(ap, duration_s=120.0, vehicles=4)
     ap.add_argument("--lanes", nargs="+", type=int, default=[0, 1])
     ap.add_argument("--across-alert-limit-m", dest="al", type=float, default=ACROSS_ALERT_LIMIT_M)

@@ -97,7 +97,9 @@ PAPER_AZ = {  # Tables 7 (vehicle 1) and 8 (vehicle 2), first half of the test
 
 
 def parse_args(argv: list[str] | None) -> argparse.Namespace:
-    ap = argparse.ArgumentParser(description=__doc__.splitlines()[0])
+    from v2v.errors import ScriptArgumentParser
+
+    ap = ScriptArgumentParser(description=__doc__.splitlines()[0])
     ap.add_argument("--out", type=Path, required=True, help="output folder")
     # (defaults None: what is not given comes from the full or the --quick set; what is given wins)
     ap.add_argument("--seeds", type=int, nargs="+", help="(default 1 2 3; --quick 1)")
@@ -113,7 +115,10 @@ def parse_args(argv: list[str] | None) -> argparse.Namespace:
         if getattr(args, key) is None:
             setattr(args, key, value)
     if not 0.0 <= args.settle_s < args.duration_s:
-        ap.error(f"--settle-s must be in [0, duration) = [0, {args.duration_s:g}), got {args.settle_s:g}")
+        from v2v.errors import UserError
+
+        raise UserError(f"{args.settle_s:g} s is not in [0, duration) = [0, {args.duration_s:g})", field="--settle-s",
+                        fix=f"give 0 <= --settle-s < --duration-s ({args.duration_s:g} s)")
     return args
 
 

@@ -22,7 +22,6 @@ Outputs in ``--out``: ``uwb_nlos_canyon.md`` / ``.json``, ``uwb_link_census.csv`
 
 from __future__ import annotations
 
-import argparse
 import json
 import math
 import sys
@@ -161,7 +160,9 @@ def plot(census: pd.DataFrame, nl: pd.DataFrame, path: Path) -> None:
 
 
 def main(argv: list[str] | None = None) -> int:
-    ap = argparse.ArgumentParser(description=__doc__.split("\n\n")[0])
+    from v2v.errors import ScriptArgumentParser
+
+    ap = ScriptArgumentParser(description=__doc__.split("\n\n")[0])
     ap.add_argument("--out", required=True, type=Path)
     ap.add_argument("--net", default="urban_canyon")
     ap.add_argument("--vehicles", type=int, default=6)

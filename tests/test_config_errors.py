@@ -4,6 +4,7 @@ with --set, and a fix that says what is allowed. Never a silent coercion or a si
 
 from __future__ import annotations
 
+import math
 import subprocess
 import sys
 from pathlib import Path
@@ -153,3 +154,95 @@ def test_the_cli_says_each_mistake_in_one_line_exit_2(tmp_path):
         assert p.returncode == 2 and len(lines) == 1 and "Traceback" not in p.stderr, p.stderr
         assert lines[0].startswith(f"v2v: error: {field}: ") and " -- fix: " in lines[0], lines[0]
         assert p.stdout == ""
+
+
+@pytest.mark.parametrize(("fault", "field", "fix"), [
+    # a field the kind does not act on is not silently ignored (prns on a pr_blunder blundered every satellite)
+    ('{kind="pr_blunder", start_s=1.0, duration_s=2.0, size_m=30.0, prns=[5]}', "faults.0.prns", "remove prns"),
+    ('{kind="clock_jump", start_s=1.0, probability=0.5}', "faults.0.probability", "remove probability"),
+    ('{kind="gnss_outage", start_s=1.0, duration_s=1.0, sensor="uwb"}', "faults.0.sensor", "remove sensor"),
+    ('{kind="satellites_lost", start_s=1.0, duration_s=1.0, prns=[3], size_cycles=2}', "faults.0.size_cycles",
+     "remove size_cycles"),
+    # non-finite sizes: NaN/Inf measurements are the nonfinite kind's (its size_m: inf for +Inf, else NaN)
+    ('{kind="pr_blunder", start_s=1.0, duration_s=2.0, size_m=nan}', "faults.0.size_m", "give a finite size_m"),
+    ('{kind="clock_jump", start_s=1.0, size_m=inf}', "faults.0.size_m", "give a finite size_m"),
+    ('{kind="uwb_scale_drift", start_s=1.0, scale_ppm=nan}', "faults.0.scale_ppm", "give a finite scale_ppm"),
+    ('{kind="nonfinite", start_s=1.0, duration_s=1.0, size_m=-inf}', "faults.0.size_m", "give size_m = inf"),
+    ('{kind="nonfinite", start_s=1.0, duration_s=1.0, size_m=5.0}', "faults.0.size_m", "give size_m = inf"),
+    # a slip beyond int64 was an OverflowError traceback in the run
+    ('{kind="cycle_slip", start_s=1.0, size_cycles=100000000000000000000}', "faults.0.size_cycles", "use a value <="),
+    ('{kind="satellites_lost", start_s=1.0, duration_s=1.0, prns=[5, -3]}', "faults.0.prns.1", "use a value >= 1"),
+    ('{kind="satellites_lost", start_s=1.0, duration_s=1.0, prns=[5, 99]}', "faults.0.prns.1", "use a value <= 32"),
+    # what a kind needs names the field it needs, with a fix
+    ('{kind="satellites_lost", start_s=1.0, duration_s=1.0}', "faults.0.prns", "give prns"),
+    ('{kind="satellites_lost", start_s=1.0, prns=[3]}', "faults.0.duration_s", "give duration_s"),
+    ('{kind="cycle_slip", start_s=1.0}', "faults.0.size_cycles", "give size_cycles"),
+    ('{kind="uwb_replace", start_s=1.0}', "faults.0.vehicles", "give e.g. vehicles"),
+])
+def test_a_fault_field_its_kind_ignores_or_cannot_use_is_refused(fault, field, fix):
+    err = _error(f"faults=[{fault}]")
+    assert err.field == field and err.fix.startswith(fix), err.one_line()
+
+
+def test_fault_fields_a_kind_uses_and_nonfinite_sizes_are_accepted(tmp_path):
+    faults = ('faults=[{kind="nonfinite", start_s=1.0, duration_s=1.0, sensor="uwb", size_m=inf, probability=0.5}, '
+              '{kind="nonfinite", start_s=1.0, duration_s=1.0, size_m=nan}, '
+              '{kind="cycle_slip", start_s=1.0, size_cycles=-2, prns=[4]}, '
+              '{kind="uwb_replace", start_s=1.0, vehicles=["c1.1"], size_m=0.4, scale_ppm=3000.0}, '
+              '{kind="satellites_lost", start_s=1.0, duration_s=1.0, prns=[1, 32]}]')
+    sc = load_scenario(None, [faults])
+    assert [f.kind for f in sc.faults] == ["nonfinite", "nonfinite", "cycle_slip", "uwb_replace", "satellites_lost"]
+    resolved = tmp_path / "scenario.resolved.toml"  # (every field written, its defaults included)
+    resolved.write_text(sc.to_toml())
+    again = load_scenario(resolved).faults
+    assert again[0] == sc.faults[0] and again[2:] == sc.faults[2:] and math.isnan(again[1].size_m)  # (nan != nan)
+
+
+@pytest.mark.parametrize(("override", "field", "fix"), [
+    # a NUL in a name or a path was a ValueError traceback (embedded null byte) when the run made its folder
+    ('name="a\\u0000b"', "name", "e.g. name ="),
+    ('name="a\\nb"', "name", "e.g. name ="),
+    ('name="' + "x" * 101 + '"', "name", "give a name of at most 100"),  # (was "--out: cannot create ..." without --out)
+    ('network.net_file="a\\u0000b"', "network.net_file", "give the file's path"),
+    ('network.polygon_files=["x.poly.xml", "a\\u0000b"]', "network.polygon_files.1", "give the file's path"),
+    ('sensors.gnss.ephemeris="a\\u0000b"', "sensors.gnss.ephemeris", "give the RINEX file's path"),
+    # cluster names prefix vehicle ids: "bg" took the background vehicles' ids (SUMO refused those, and the
+    # refusals were logged as teleports of the cluster's own vehicles); "" gave ids ".0", ".1"
+    ('clusters.0.name="bg"', "clusters.0.name", "give the cluster another name"),
+    ('clusters.0.name=""', "clusters.0.name", "give a name such as"),
+    ('clusters.0.name="a/b"', "clusters.0.name", "give a name such as"),
+    ('clusters.0.name="a\\tb"', "clusters.0.name", "give a name such as"),
+])
+def test_names_and_paths_that_cannot_be_folders_ids_or_files_are_refused(override, field, fix):
+    err = _error(override)
+    assert err.field == field and err.fix.startswith(fix), err.one_line()
+
+
+@pytest.mark.parametrize(("override", "field", "fix"), [
+    ('network.name=""', "network.name", "give network.name"),
+    ("clusters.0.lanes=[0, -1]", "clusters.0.lanes.1", "give lanes such as"),
+    ('solutions=[{name="a", sensors=["gnss", "lidar"]}]', "solutions.0.sensors", "use 'gnss', 'uwb', 'bearing'"),
+    ('solutions=[{name="a", sensors=["uwb"]}]', "solutions.0.sensors", 'add "gnss"'),
+    ('solutions=[{name="a", sensors=["gnss"], azimuth="estimated"}]', "solutions.0.azimuth", 'add "bearing"'),
+    ('solutions=[{name="a", sensors=["gnss"], uwb_error_states=true}]', "solutions.0.uwb_error_states", 'add "uwb"'),
+    ('solutions=[{name="a", sensors=["gnss", "uwb"], uwb_constraints=true}]', "solutions.0.uwb_constraints",
+     "set uwb_error_states = true"),
+    ('solutions=[{name="a", sensors=["gnss", "uwb"], uwb_scale_bounds=[1, 0]}]', "solutions.0.uwb_scale_bounds",
+     "give e.g. [0.0, 0.005]"),
+    ("clusters.0=5", "clusters.0", "give a table"),
+    ("sensors=1", "sensors", "give a table"),
+    ("start_utc=19:00:00", "start_utc", "give a date and time"),
+])
+def test_a_rule_s_error_names_the_field_and_a_fix_not_correct_the_value(override, field, fix):
+    err = _error(override)
+    assert err.field == field and err.fix.startswith(fix), err.one_line()
+    assert "ClusterConfig" not in err.message and "SensorsSection" not in err.message
+
+
+def test_a_polygon_file_that_is_a_folder_or_empty_says_so(tmp_path):
+    from v2v.run import check_scenario
+
+    for given, why in ((str(tmp_path), "is a folder"), ("", "is empty"), (str(tmp_path / "no.poly.xml"), "not found")):
+        with pytest.raises(UserError) as e:
+            check_scenario(load_scenario(None, [f"network.polygon_files=[{given!r}]"]))
+        assert e.value.field == "network.polygon_files.0" and e.value.message.endswith(why), e.value.one_line()

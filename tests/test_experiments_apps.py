@@ -106,6 +106,16 @@ def test_fcw_study_quick(tmp_path: Path):
     ("covariance_analysis.py", ["--quick"], "--out"),  # --out below a file (every script makes it the same way)
     ("fault_campaign.py", ["--quick", "--trials", "0"], "--trials"),  # (0 meant the default, 300)
     ("lane_level.py", ["--quick", "--across-alert-limit-m", "-1"], "--across-alert-limit-m"),
+    # argparse's own errors: one line with a fix, not its usage block (and --settle-s's was one of those)
+    ("fcw_study.py", ["--quick", "--seed", "1.5"], "argument --seed"),
+    ("carrier_phase.py", ["--parts", "nope"], "argument --parts"),
+    ("paper_sensor_combinations.py", ["--quick", "--settle-s", "-1"], "--settle-s"),
+    # options used only by a later part are checked before the first part runs and writes its tables
+    ("covariance_analysis.py", ["--quick", "--outage-start-s", "inf"], "--outage-start-s"),
+    ("covariance_analysis.py", ["--quick", "--outage-vehicles", "1"], "clusters.0.vehicles"),
+    ("covariance_analysis.py", ["--quick", "--converge-s", "40"], "--converge-s"),
+    ("carrier_phase.py", ["--quick", "--lanes", "[9]"], "clusters.0.lanes"),
+    ("carrier_phase.py", ["--quick", "--time-gap-s", "0"], "clusters.0.time_gap_s"),
 ])
 def test_experiment_scripts_refuse_bad_input_in_one_line(tmp_path, script, args, field):
     """An experiment run as a script treats a user's mistake as `v2v` does: one line naming the

@@ -134,16 +134,16 @@ def test_faults_that_cannot_act_are_refused_or_noted(tmp_path):
     sc = load_scenario(None, base)
     up = _sky_in_view(sc)
     down = min(set(range(1, 28)) - up)  # a PRN of the 27-slot nominal sky that is below the horizon
-    bad = load_scenario(None, [*base, 'faults=[{kind="satellites_lost", start_s=1.0, duration_s=1.0, prns=[99]}]'])
+    bad = load_scenario(None, [*base, 'faults=[{kind="satellites_lost", start_s=1.0, duration_s=1.0, prns=[30]}]'])
     for check in (lambda: check_scenario(bad), lambda: run_scenario(bad, tmp_path / "bad", quiet=True, replay=False)):
         with pytest.raises(UserError) as ei:
             check()
-        assert ei.value.field == "faults.0.prns" and "[99]" in ei.value.message
+        assert ei.value.field == "faults.0.prns" and "[30]" in ei.value.message
     assert not (tmp_path / "bad").exists()
     sc = load_scenario(None, [*base, "faults=[" + ", ".join([
         '{kind="clock_jump", start_s=120.0, vehicles=["c1.1"]}',
         f'{{kind="satellites_lost", start_s=1.0, duration_s=1.0, prns=[{down}]}}',
-        f'{{kind="satellites_lost", start_s=1.0, duration_s=1.0, prns=[{min(up)}, 99]}}']) + "]"])
+        f'{{kind="satellites_lost", start_s=1.0, duration_s=1.0, prns=[{min(up)}, 30]}}']) + "]"])
     res = run_scenario(sc, tmp_path / "r", quiet=True, replay=False)
     note = res.summary["note"]
     assert "never injected: faults.0 (clock_jump at 120 s)" in note

@@ -7,6 +7,7 @@ status 2; it never shows a traceback for these.
 
 from __future__ import annotations
 
+import argparse
 import math
 import sys
 from collections.abc import Callable, Iterator
@@ -138,6 +139,15 @@ def interrupts_unwrapped() -> Iterator[None]:
         if interrupt is None:
             raise
         raise interrupt from None
+
+
+class ScriptArgumentParser(argparse.ArgumentParser):
+    """An experiment script's argument parser: a bad option (an int that is not one, a missing
+    value, an unknown choice) is one line on stderr and exit status 2, as ``v2v``'s are
+    (``<prog>: error: <what> -- fix: see `<prog> --help```), not argparse's usage block."""
+
+    def error(self, message: str):  # (exits: argparse's NoReturn)
+        self.exit(EXIT_USER_ERROR, f"{self.prog}: error: {message} -- fix: see `{self.prog} --help`\n")
 
 
 def script_main(main: Callable[[], int | None], prog: str) -> int:

@@ -31,8 +31,9 @@ Kinds
 
 from __future__ import annotations
 
+import math
 from dataclasses import dataclass, field, replace
-from typing import Literal
+from typing import Annotated, Literal
 
 import numpy as np
 from pydantic import BaseModel, ConfigDict, Field, StrictFloat, StrictInt, model_validator
@@ -45,6 +46,21 @@ FaultKind = Literal[
 ]
 
 
+# what each kind acts on besides start_s, duration_s and vehicles (which every kind uses), and
+# the defaults of those optional fields: a field a kind does not use, given anything but its
+# default, is an error (pr_blunder with prns = [5] would blunder every satellite, not PRN 5)
+_KIND_FIELDS: dict[str, tuple[str, ...]] = {
+    "gnss_outage": (), "satellites_lost": ("prns",), "clock_jump": ("size_m",), "cycle_slip": ("prns", "size_cycles"),
+    "pr_blunder": ("size_m", "probability"), "uwb_blunder": ("size_m", "probability"),
+    "uwb_replace": ("size_m", "scale_ppm"), "uwb_scale_drift": ("scale_ppm",), "bearing_outage": (),
+    "nonfinite": ("sensor", "size_m", "probability"), "message_loss": (), "vehicle_leaves": (),
+}
+_OPTIONAL_DEFAULTS: dict[str, object] = {"prns": [], "size_m": 0.0, "size_cycles": 0, "scale_ppm": 0.0,
+                                         "probability": 1.0, "sensor": "gnss"}
+MAX_PRN = 32  # GPS PRNs (the nominal constellation's slots are 1-27; a RINEX file's GPS PRNs 1-32)
+MAX_SIZE_CYCLES = 10**9  # (carrier_cycles is float64, ambiguity_cycles int64: beyond, a slip overflows or loses cycles)
+
+
 class FaultSection(BaseModel):
     """One ``[[faults]]`` entry."""
 
@@ -53,9 +69,9 @@ class FaultSection(BaseModel):
     start_s: StrictFloat = Field(ge=0.0)
     duration_s: StrictFloat = Field(default=0.0, ge=0.0)
     vehicles: Literal["all"] | list[str] = "all"
-    prns: list[StrictInt] = Field(default_factory=list)
+    prns: list[Annotated[StrictInt, Field(ge=1, le=MAX_PRN)]] = Field(default_factory=list)
     size_m: StrictFloat = 0.0
-    size_cycles: StrictInt = 0
+    size_cycles: StrictInt = Field(default=0, ge=-MAX_SIZE_CYCLES, le=MAX_SIZE_CYCLES)
     scale_ppm: StrictFloat = 0.0
     probability: StrictFloat = Field(default=1.0, ge=0.0, le=1.0)
     sensor: Literal["gnss", "uwb", "bearing"] = "gnss"
@@ -63,17 +79,33 @@ class FaultSection(BaseModel):
     @model_validator(mode="after")
     def _needs(self) -> FaultSection:
         k = self.kind
+        for name, default in _OPTIONAL_DEFAULTS.items():
+            value = getattr(self, name)
+            if name not in _KIND_FIELDS[k] and value != default:  # (nan != 0.0)
+                users = ", ".join(kk for kk, used in _KIND_FIELDS.items() if name in used)
+                raise ValueError(f"@{name}: {k} does not use {name} (got {value!r}) -- fix: remove {name} from this "
+                                 f"fault ({name} is for {users})")
+        if k == "nonfinite":
+            if not (self.size_m == 0.0 or math.isnan(self.size_m) or self.size_m == math.inf):
+                raise ValueError(f"@size_m: a nonfinite fault writes NaN, or +Inf with size_m = inf (got {self.size_m!r})"
+                                 " -- fix: give size_m = inf for +Inf, or leave size_m out for NaN")
+        elif not math.isfinite(self.size_m):
+            raise ValueError(f"@size_m: {k}'s size_m must be a finite number of metres (got {self.size_m!r}) -- fix: give"
+                             " a finite size_m (non-finite measurements: kind = \"nonfinite\")")
+        if not math.isfinite(self.scale_ppm):
+            raise ValueError(f"@scale_ppm: must be a finite number (got {self.scale_ppm!r}) -- fix: give a finite scale_ppm")
         if k == "satellites_lost" and not self.prns:
-            raise ValueError("satellites_lost needs prns = [...]")
+            raise ValueError("@prns: satellites_lost needs the PRNs it removes -- fix: give prns = [...], e.g. [5, 12]")
         if k in ("pr_blunder", "uwb_blunder") and self.size_m == 0.0:
-            raise ValueError(f"{k} needs size_m (the blunder, metres)")
+            raise ValueError(f"@size_m: {k} needs size_m (the blunder, metres) -- fix: give size_m, e.g. 30.0")
         if k == "cycle_slip" and self.size_cycles == 0:
-            raise ValueError("cycle_slip needs size_cycles (a non-zero integer)")
+            raise ValueError("@size_cycles: cycle_slip needs size_cycles (a non-zero integer) -- fix: give size_cycles, "
+                             "e.g. 1 or -2")
         if k == "uwb_replace" and (self.vehicles == "all" or len(self.vehicles) != 1):
-            raise ValueError("uwb_replace needs vehicles = [one vehicle id]")
+            raise ValueError('@vehicles: uwb_replace needs vehicles = [one vehicle id] -- fix: give e.g. vehicles = ["c1.1"]')
         if k in ("gnss_outage", "satellites_lost", "pr_blunder", "uwb_blunder", "bearing_outage", "nonfinite",
                  "message_loss", "vehicle_leaves") and self.duration_s <= 0.0:
-            raise ValueError(f"{k} needs duration_s > 0")
+            raise ValueError(f"@duration_s: {k} needs duration_s > 0 (its window) -- fix: give duration_s, e.g. 10.0")
         return self
 
     def size_or_default_m(self) -> float:

@@ -35,7 +35,7 @@ import numpy as np
 
 from v2v import __version__
 from v2v.config.scenario import Scenario, save_resolved
-from v2v.errors import UserError, check_interrupt
+from v2v.errors import UserError, check_interrupt, not_a_file
 from v2v.frames import GeoReference
 from v2v.io.atomic import RunFolder, atomic_write_json, atomic_write_parquet
 from v2v.io.tables import ParquetStream
@@ -91,8 +91,9 @@ def resolve_network(scenario: Scenario) -> ResolvedNetwork:
     if cfg.polygon_files:
         polys = tuple(Path(p) for p in cfg.polygon_files)
         for i, p in enumerate(polys):
-            if not p.is_file():
-                raise UserError(f"polygon file {str(p)!r} not found", field=f"network.polygon_files.{i}",
+            why = not_a_file(p) if cfg.polygon_files[i].strip() else "is empty"
+            if why:
+                raise UserError(f"polygon file {cfg.polygon_files[i]!r} {why}", field=f"network.polygon_files.{i}",
                                 fix="give an existing SUMO .poly.xml/.add.xml, or leave the list empty")
     else:
         polys = (Path(built.poly_path),) if built.poly_path else ()

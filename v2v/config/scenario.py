@@ -37,6 +37,19 @@ from v2v.errors import UserError, not_a_file
 from v2v.faults import FaultSection
 
 DEFAULT_SCENARIO_PATH = Path(__file__).with_name("default.toml")
+MAX_NAME_BYTES = 100  # a scenario's name names its run folder (and, with 18 more, the hidden staging folder)
+BACKGROUND_PREFIX = "bg"  # background vehicles are bg.0, bg.1, ...: no cluster may be called that
+
+
+def _control_chars(v: str) -> bool:
+    return any(ord(ch) < 32 or ord(ch) == 127 for ch in v)
+
+
+def _a_path(v: str) -> str:
+    """A file path field: a NUL byte cannot be in a path (Python's file calls raise ValueError)."""
+    if "\x00" in v:
+        raise ValueError("contains a NUL character (\\u0000), which no file path can -- fix: give the file's path")
+    return v
 
 
 class _Model(BaseModel):
@@ -58,10 +71,26 @@ class NetworkConfig(_Model):
     georef_lat_deg: StrictFloat = Field(default=51.0775, ge=-90.0, le=90.0)
     georef_lon_deg: StrictFloat = Field(default=-114.1295, ge=-180.0, le=180.0)
 
+    @field_validator("net_file")
+    @classmethod
+    def _net_file_is_a_path(cls, v: str) -> str:
+        return _a_path(v)
+
+    @field_validator("polygon_files")
+    @classmethod
+    def _polygon_files_are_paths(cls, v: list[str]) -> list[str]:
+        for i, f in enumerate(v):
+            try:
+                _a_path(f)
+            except ValueError as exc:
+                raise ValueError(f"@{i}: {exc}") from None
+        return v
+
     @model_validator(mode="after")
     def _one_source(self) -> NetworkConfig:
         if not self.name and not self.net_file:
-            raise ValueError("give network.name (a sumo_nets/ name) or network.net_file")
+            raise ValueError("@name: no network given (network.name and network.net_file are both empty) -- fix: give"
+                             ' network.name (a sumo_nets/ name, e.g. "hospital_loop") or network.net_file')
         return self
 
 
@@ -101,11 +130,25 @@ class ClusterConfig(_Model):
     depart_s: StrictFloat = Field(default=0.0, ge=0.0, le=3600.0)
     max_separation_m: StrictFloat = Field(default=300.0, gt=0.0)
 
+    @field_validator("name")
+    @classmethod
+    def _name_is_a_vehicle_id_prefix(cls, v: str) -> str:
+        # its vehicles are <name>.0, <name>.1, ... in SUMO, the outputs and the replay's entity paths;
+        # a multi-cluster run keys its solutions <cluster>/<solution>
+        if not v.strip() or "/" in v or _control_chars(v):
+            raise ValueError("must be a non-empty name without '/' or control characters (it prefixes its vehicle ids)"
+                             ' -- fix: give a name such as "c1"')
+        if v == BACKGROUND_PREFIX:
+            raise ValueError(f"{v!r} is reserved: background vehicles are {v}.0, {v}.1, ... (SUMO refused them, or"
+                             ' they took the cluster\'s ids) -- fix: give the cluster another name, e.g. "c1"')
+        return v
+
     @field_validator("lanes")
     @classmethod
     def _lanes_nonneg(cls, v: list[int]) -> list[int]:
-        if any(lane < 0 for lane in v):
-            raise ValueError("lane indices are >= 0 (0 = rightmost lane)")
+        for i, lane in enumerate(v):
+            if lane < 0:
+                raise ValueError(f"@{i}: lane indices are >= 0 (0 = rightmost lane) -- fix: give lanes such as [0] or [0, 1]")
         return v
 
     @model_validator(mode="after")
@@ -156,9 +199,12 @@ class Scenario(_Model):
     @classmethod
     def _name_is_a_folder_name(cls, v: str) -> str:
         # the default run folder is runs/<name>: "", ".", ".." or a path would put it elsewhere
-        if not v.strip() or v in (".", "..") or "/" in v or "\\" in v:
-            raise ValueError("must be a non-empty name without '/' (it names the run folder runs/<name>)"
-                             ' -- fix: e.g. name = "urban_canyon"')
+        if not v.strip() or v in (".", "..") or "/" in v or "\\" in v or _control_chars(v):
+            raise ValueError("must be a non-empty name without '/' or control characters (it names the run folder"
+                             ' runs/<name>) -- fix: e.g. name = "urban_canyon"')
+        if len(v.encode()) > MAX_NAME_BYTES:
+            raise ValueError(f"is {len(v.encode())} bytes long: a run folder's name is at most {MAX_NAME_BYTES} -- fix:"
+                             f" give a name of at most {MAX_NAME_BYTES} characters (UTF-8 bytes)")
         return v
 
     @model_validator(mode="after")
@@ -333,6 +379,8 @@ def _format_validation_error(err: ValidationError, data: dict[str, Any], source:
     if e["type"] == "missing":
         return UserError(f"required key missing in {source}", field=loc, fix="add it (see the README scenario reference)")
     msg = e["msg"].removeprefix("Value error, ")
+    if e["type"] in ("model_type", "dict_type"):
+        msg = "is a table of fields, not a single value"
     # a validator may name the field and the fix itself: "@field: message -- fix: what to do"
     fix = _constraint_fix(e)
     if " -- fix: " in msg:
@@ -385,7 +433,10 @@ _TYPE_FIXES = {"int_parsing": "give a whole number", "int_from_float": "give a w
                "string_type": 'give a quoted string, e.g. "name"', "list_type": "give a list, e.g. [0, 1]",
                "too_short": "give at least {min_length} item(s)", "too_long": "give at most {max_length} item(s)",
                "literal_error": "use one of {expected}", "datetime_parsing": 'give an ISO 8601 time, e.g. "2021-04-28T19:00:00Z"',
-               "datetime_from_date_parsing": 'give an ISO 8601 time, e.g. "2021-04-28T19:00:00Z"'}
+               "datetime_from_date_parsing": 'give an ISO 8601 time, e.g. "2021-04-28T19:00:00Z"',
+               "datetime_type": 'give a date and time, e.g. 2021-04-28T19:00:00Z',
+               "model_type": "give a table {{key = value, ...}}, or set one of its keys (e.g. --set {loc}.KEY=VALUE)",
+               "dict_type": "give a table {{key = value, ...}}, or set one of its keys (e.g. --set {loc}.KEY=VALUE)"}
 
 
 def _constraint_fix(e: Any) -> str:
@@ -401,7 +452,7 @@ def _constraint_fix(e: Any) -> str:
         hint = (" (no quotes)" if isinstance(got, str) else " (not true or false)" if isinstance(got, bool)
                 else f", not {got!r}" if isinstance(got, int | float) else "")
         try:
-            return _TYPE_FIXES[kind].format(hint=hint, **ctx)
+            return _TYPE_FIXES[kind].format(hint=hint, loc=".".join(str(p) for p in e["loc"]) or "KEY", **ctx)
         except (KeyError, IndexError):
             return _TYPE_FIXES[kind].split(" {")[0]
     return "correct the value"

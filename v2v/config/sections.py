@@ -51,6 +51,14 @@ class GnssSection(_Model):
     oscillator: Literal["TCXO", "OCXO"] = "TCXO"
     errors: GnssErrorsSection = GnssErrorsSection()
 
+    @field_validator("ephemeris")
+    @classmethod
+    def _ephemeris_is_a_path(cls, v: str) -> str:
+        if "\x00" in v:  # (Python's file calls raise ValueError on it)
+            raise ValueError('contains a NUL character (\\u0000), which no file path can -- fix: give the RINEX'
+                             ' file\'s path, or "nominal"')
+        return v
+
 
 # the built-in UWB radio profiles (v2v.sensors.uwb.PROFILES; names matched case-insensitively)
 UWB_PROFILE_NAMES = ("ideal", "mssi", "tdc")
@@ -208,23 +216,27 @@ class SolutionSection(_Model):
     def _known_sensors(cls, v: list[str]) -> list[str]:
         bad = [s for s in v if s not in SENSOR_NAMES]
         if bad:
-            raise ValueError(f"unknown sensor(s) {bad}; known: {list(SENSOR_NAMES)}")
+            raise ValueError(f"unknown sensor(s) {bad} -- fix: use {', '.join(map(repr, SENSOR_NAMES))}")
         if "gnss" not in v:
-            raise ValueError("every solution needs 'gnss' (the relative DGPS backbone)")
+            raise ValueError("every solution needs 'gnss' (the relative DGPS backbone) -- fix: add \"gnss\" to sensors")
         return v
 
     @model_validator(mode="after")
     def _azimuth_needs_bearing(self) -> SolutionSection:
         if self.azimuth == "estimated" and "bearing" not in self.sensors:
-            raise ValueError("azimuth = 'estimated' needs the 'bearing' sensor in this solution")
+            raise ValueError("@azimuth: azimuth = 'estimated' needs the 'bearing' sensor in this solution -- fix: add"
+                             ' "bearing" to its sensors, or azimuth = "known"')
         if self.uwb_error_states and "uwb" not in self.sensors:
-            raise ValueError("uwb_error_states needs the 'uwb' sensor in this solution")
+            raise ValueError("@uwb_error_states: uwb_error_states needs the 'uwb' sensor in this solution -- fix: add"
+                             ' "uwb" to its sensors, or uwb_error_states = false')
         if self.uwb_constraints and not self.uwb_error_states:
-            raise ValueError("uwb_constraints bound the UWB bias / scale states: set uwb_error_states = true too")
+            raise ValueError("@uwb_constraints: uwb_constraints bound the UWB bias / scale states -- fix: set"
+                             " uwb_error_states = true too, or uwb_constraints = false")
         for name in ("uwb_bias_bounds_m", "uwb_scale_bounds"):
             lo, hi = getattr(self, name)
             if not lo < hi:
-                raise ValueError(f"{name} needs [min, max] with min < max, got [{lo}, {hi}]")
+                raise ValueError(f"@{name}: needs [min, max] with min < max, got [{lo}, {hi}] -- fix: give e.g."
+                                 f" {list(type(self).model_fields[name].default)}")
         return self
 
 
