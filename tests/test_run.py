@@ -296,6 +296,24 @@ def test_saving_measurements_does_not_change_the_estimates(tmp_path):
     assert on.summary["statistics"] == off.summary["statistics"]
 
 
+def test_disabled_gnss_reports_no_pseudoranges(tmp_path):
+    """``sensors.gnss.enabled = false`` (possible only without a solution: every solution uses
+    GNSS) means no such measurements (README, the scenario's fields): a UWB / bearing data set
+    with ``--save-measurements`` has no pseudorange row and the summary counts no GNSS epoch,
+    while the other sensors are those of the same run with GNSS on (their own seed streams)."""
+    sets = ["duration_s=4.0", "solutions=[]"]
+    off = run_scenario(load_scenario(None, [*sets, "sensors.gnss.enabled=false"]), tmp_path / "off", quiet=True,
+                       replay=False, save_measurements=True)
+    run_scenario(load_scenario(None, sets), tmp_path / "on", quiet=True, replay=False, save_measurements=True)
+    m_off = pd.read_parquet(tmp_path / "off" / "measurements.parquet")
+    m_on = pd.read_parquet(tmp_path / "on" / "measurements.parquet")
+    assert set(m_off["type"]) == {"uwb", "bearing"} and "pseudorange" in set(m_on["type"])
+    assert off.summary["gnss"]["epochs"] == 0
+    pd.testing.assert_frame_equal(m_off.reset_index(drop=True)[["t_s", "type", "vehicle", "value"]],
+                                  m_on[m_on["type"] != "pseudorange"].reset_index(drop=True)[["t_s", "type", "vehicle", "value"]],
+                                  check_exact=True)
+
+
 def test_other_seed_changes_measurements(short_run, tmp_path):
     out, _ = short_run
     out3 = tmp_path / "seed8"

@@ -506,9 +506,12 @@ def _run_scenario(scenario: Scenario, out_dir: Path, *, quiet: bool, replay: boo
                     epochs = apply_gnss_faults(epochs, list(scenario.faults), frng, fault_log)
                     uwb = apply_uwb_faults(uwb, list(scenario.faults), frng, fault_log)
                     bearings = apply_bearing_faults(bearings, list(scenario.faults), frng, fault_log)
+                # sensors.gnss.enabled = false (no solution: the scenario refuses one that would use it):
+                # the receivers still run, as they set the output epochs, but nothing of theirs is reported
+                reported = epochs if scenario.sensors.gnss.enabled else []
                 if save_measurements:
-                    measurements.append((epochs, uwb, bearings))
-                acc.add_sensors(epochs, uwb, bearings)
+                    measurements.append((reported, uwb, bearings))
+                acc.add_sensors(reported, uwb, bearings)
                 # the measurements are known up to: the last step (GNSS, bearings), the UWB horizon
                 known = steps[-1].t_s if steps else -np.inf
                 if uwb_stream is not None and not final:

@@ -222,17 +222,24 @@ class RunFolder:
 
 @contextlib.contextmanager
 def _signals_held() -> Iterator[None]:
-    """SIGINT and SIGTERM blocked inside (where the platform can block them: on the main
-    thread of a POSIX system); one that arrives meanwhile is delivered, and raises as usual,
-    once the block is done."""
+    """SIGINT and SIGTERM held inside: a handler that only records them stands in for the
+    process's own, which gets each recorded signal again (``signal.raise_signal``) once the
+    block is done and the handlers are back. (Blocking them with ``pthread_sigmask`` is not
+    enough: it blocks the main thread only, and the kernel then hands a process-directed signal
+    to another thread, such as OpenBLAS's, whose delivery Python acts on in the main thread at
+    once.) Off the main thread, where handlers cannot be set, it holds nothing."""
     import signal
     import threading
 
-    if not hasattr(signal, "pthread_sigmask") or threading.current_thread() is not threading.main_thread():
+    if threading.current_thread() is not threading.main_thread():
         yield
         return
-    before = signal.pthread_sigmask(signal.SIG_BLOCK, {signal.SIGINT, signal.SIGTERM})
+    held: list[int] = []
+    old = {sig: signal.signal(sig, lambda signum, _frame: held.append(signum)) for sig in (signal.SIGINT, signal.SIGTERM)}
     try:
         yield
     finally:
-        signal.pthread_sigmask(signal.SIG_SETMASK, before)
+        for sig, handler in old.items():
+            signal.signal(sig, handler)
+        for signum in dict.fromkeys(held):  # (each once, in order of arrival)
+            signal.raise_signal(signum)
