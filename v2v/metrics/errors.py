@@ -58,7 +58,7 @@ def error_statistics(err_m: ArrayLike) -> dict[str, float]:
     return {
         "n": int(e.size),
         "mean": float(np.mean(e)),
-        "std": float(np.std(e, ddof=1)) if e.size > 1 else 0.0,
+        "std": float(np.std(e, ddof=1)) if e.size > 1 else float("nan"),  # (undefined for one sample)
         "rms": float(np.sqrt(np.mean(e * e))),
         "p95_abs": float(np.percentile(np.abs(e), 95.0)),
         "max_abs": float(np.max(np.abs(e))),
