@@ -310,7 +310,7 @@ def test_web_replay_refuses_a_port_in_use_and_names_both_ports(tmp_path, monkeyp
 
     from v2v.cli import web_viewer_url
 
-    (tmp_path / "replay.rrd").write_bytes(b"RRF2" + bytes(60))
+    _real_recording(tmp_path / "replay.rrd")
     with socket.socket() as busy, socket.socket() as free:
         busy.bind(("127.0.0.1", 0))
         busy.listen()
@@ -331,6 +331,48 @@ def test_web_replay_refuses_a_port_in_use_and_names_both_ports(tmp_path, monkeyp
     assert web_viewer_url(f, b) == url and url in err
     assert f"ssh -L {f}:127.0.0.1:{f} -L {b}:127.0.0.1:{b}" in err
     assert calls and calls[0][calls[0].index("--port") + 1] == str(b)
+
+
+def _real_recording(path: Path) -> None:
+    """A small recording written by the pinned rerun SDK (a file rerun reads whole)."""
+    import rerun as rr
+
+    rec = rr.RecordingStream("v2v-test")
+    rec.save(str(path))
+    rec.log("points", rr.Points3D([[0.0, 0.0, 0.0], [1.0, 2.0, 3.0]]))
+    rec.flush()
+    rec.disconnect()
+
+
+def _rerun_exe(rrd: Path) -> str:
+    from v2v.cli import replay_command
+
+    return replay_command(rrd)[0]
+
+
+def test_replay_refuses_a_recording_cut_short(tmp_path, monkeypatch, capsys):
+    """A copy of a recording cut short (its RRF2 header intact) is one line naming RUN_DIR,
+    not a viewer showing part of it or nothing; the whole file opens."""
+    import subprocess
+
+    _real_recording(tmp_path / "whole.rrd")
+    whole = (tmp_path / "whole.rrd").read_bytes()
+    calls = []
+    monkeypatch.setattr(subprocess, "call", lambda cmd: calls.append(cmd) or 0)
+    monkeypatch.setenv("DISPLAY", ":0")
+    assert main(["replay", str(tmp_path / "whole.rrd")]) == 0 and len(calls) == 1
+    exe = _rerun_exe(tmp_path / "whole.rrd")
+    verdict = subprocess.run([exe, "rrd", "verify", str(tmp_path / "whole.rrd")], capture_output=True, text=True)
+    assert verdict.returncode == 0 and "1 file verified" in verdict.stderr  # rerun's own reader: whole
+    for keep in (len(whole) // 2, 12):  # cut inside the data, and inside the first message
+        (tmp_path / "cut.rrd").write_bytes(whole[:keep])
+        if keep > 12:  # (rerun's reader agrees: no footer; cut inside the first message it reads "0 files")
+            verdict = subprocess.run([exe, "rrd", "verify", str(tmp_path / "cut.rrd")], capture_output=True, text=True)
+            assert verdict.returncode != 0 and "footer" in verdict.stderr.lower()
+        assert main(["replay", str(tmp_path / "cut.rrd")]) == 2
+        err = [ln for ln in capsys.readouterr().err.splitlines() if ln.strip()]
+        assert len(err) == 1 and err[0].startswith("v2v: error: RUN_DIR: ") and "not a whole rerun recording" in err[0], err
+    assert len(calls) == 1
 
 
 def _readme_scenario_block() -> str:
