@@ -65,6 +65,34 @@ def _phase_solutions(uwb_sigma_m: float, bearing: bool = True, extra: tuple[str,
     return "solutions=[" + ", ".join(items) + "]"
 
 
+def check_solution_set(items: tuple[str, ...]) -> None:
+    """Each ``--solution-set`` item is one ``field=value`` (TOML value) of a solution, other than
+    its ``name`` and ``sensors`` (which define the script's solutions) and the fields the script
+    sets itself, checked before any run."""
+    import tomllib
+
+    from v2v.config.sections import SolutionSection
+    from v2v.errors import UserError
+
+    own = {"carrier_phase", "pseudorange_sigma_m", "uwb_error_states", "uwb_sigma_m"}  # what _phase_solutions sets
+    fields = sorted(set(SolutionSection.model_fields) - {"name", "sensors"} - own)
+    for item in items:
+        key = item.split("=", 1)[0].strip()
+        try:
+            ok = "=" in item and len(tomllib.loads(item)) == 1
+        except tomllib.TOMLDecodeError:
+            ok = False
+        if not ok:
+            raise UserError(f"{item!r} is not one KEY=VALUE (a TOML value, strings in quotes)", field="--solution-set",
+                            fix="write e.g. gnss_cn0_mask_dbhz=41 or ar_ratio=3.0")
+        if key in own:
+            raise UserError(f"{key!r} is set by the script for its solutions", field="--solution-set",
+                            fix="leave it out" + (" and use --uwb-sigma-m" if key == "uwb_sigma_m" else ""))
+        if key not in fields:
+            raise UserError(f"{key!r} is not a solution field this script lets you set", field="--solution-set",
+                            fix=f"use one of {', '.join(fields)}")
+
+
 def _run(overrides: list[str], folder: Path, scenario: Path | None = None, save: bool = False) -> Path:
     from v2v.config.scenario import load_scenario
     from v2v.run import run_scenario
@@ -315,6 +343,7 @@ def main(argv: list[str] | None = None) -> int:
                          "or gnss_min_satellites=4 (TOML values)")
     args = ap.parse_args(argv)
     args.solution_set = tuple(args.solution_set)
+    check_solution_set(args.solution_set)
     from v2v.errors import check_positive
 
     check_positive(args.keep, "--keep")

@@ -116,6 +116,11 @@ def test_fcw_study_quick(tmp_path: Path):
     ("covariance_analysis.py", ["--quick", "--converge-s", "40"], "--converge-s"),
     ("carrier_phase.py", ["--quick", "--lanes", "[9]"], "clusters.0.lanes"),
     ("carrier_phase.py", ["--quick", "--time-gap-s", "0"], "clusters.0.time_gap_s"),
+    # --solution-set: not KEY=VALUE, a field that names or defines the script's solutions, an unknown one
+    ("carrier_phase.py", ["--quick", "--solution-set", "nokey"], "--solution-set"),
+    ("carrier_phase.py", ["--quick", "--solution-set", 'name="x"'], "--solution-set"),
+    ("carrier_phase.py", ["--quick", "--solution-set", "pseudorange_sigma_m=2"], "--solution-set"),
+    ("carrier_phase.py", ["--quick", "--solution-set", "gnss_cn0_mask=41"], "--solution-set"),
 ])
 def test_experiment_scripts_refuse_bad_input_in_one_line(tmp_path, script, args, field):
     """An experiment run as a script treats a user's mistake as `v2v` does: one line naming the
