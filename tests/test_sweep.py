@@ -165,6 +165,102 @@ def test_t_interval_matches_student_t_tables():
     assert math.isnan(t_interval_half_width([3.0, float("nan")])[3])  # one finite value: no interval
 
 
+def _synthetic_runs() -> pd.DataFrame:
+    """runs.parquet as a sweep writes it: grid x seeds, one failed run (a number it must not
+    count), a vehicle never initialized in one run (std NaN, epochs 50), a vehicle absent from
+    the runs of one grid point (no epochs), a grid point with one finished seed."""
+    nan = math.nan
+    rows = [  # (n_vehicles, seed, status, c1.1 std, c1.2 std, c1.2 epochs, c1.3 std, c1.3 epochs)
+        (3, 1, "ok", 0.10, 0.20, 50, 0.30, 50),
+        (3, 2, "ok", 0.12, nan, 50, 0.35, 50),
+        (3, 3, "ok", 0.16, 0.26, 50, 0.28, 50),
+        (3, 4, "failed", 9.0, 9.0, 50, 9.0, 50),
+        (2, 1, "ok", 0.11, 0.21, 50, nan, nan),
+        (2, 2, "ok", 0.14, 0.19, 50, nan, nan),
+        (1, 1, "ok", 0.50, nan, nan, nan, nan),
+        (1, 2, "failed", nan, nan, nan, nan, nan),
+    ]
+    return pd.DataFrame([{"run_id": f"n{v}-s{s}", "n_vehicles": v, "seed": s, "status": st,
+                          "error": "" if st == "ok" else "RuntimeError: x", "wall_s": 1.0 + s, "note": "",
+                          "GPS.c1.1.epochs": 50.0, "GPS.c1.1.along.std": a, "GPS.c1.2.epochs": float(e2),
+                          "GPS.c1.2.along.std": b, "GPS.c1.3.epochs": float(e3), "GPS.c1.3.along.std": c}
+                         for v, s, st, a, b, e2, c, e3 in rows])
+
+
+def _independent_cell(x) -> dict[str, float]:
+    from scipy import stats
+
+    x = np.asarray(x, dtype=float)
+    x = x[np.isfinite(x)]
+    n, mean = len(x), x.mean()
+    std = x.std(ddof=1) if n > 1 else math.nan
+    half = stats.t.ppf(0.975, n - 1) * std / math.sqrt(n) if n > 1 else math.nan
+    return {"n": n, "mean": mean, "std": std, "ci95_half": half, "ci95_low": mean - half, "ci95_high": mean + half}
+
+
+def test_aggregate_matches_an_independent_t_interval_per_grid_point():
+    from v2v.sweep import _with_vehicle_means, aggregate_runs
+
+    runs = _synthetic_runs()
+    df, solutions = _with_vehicle_means(runs)
+    assert solutions == ["GPS"]
+    agg = aggregate_runs(df, ["n_vehicles"])
+    ok = runs[runs["status"] == "ok"]
+    # the mean over a run's vehicles: NaN when one of its vehicles has no std (n = 2 seeds),
+    # over the vehicles it has when the grid point has fewer (c1.3 absent at n_vehicles = 2)
+    vm = df.set_index("run_id")["GPS.vehicles_mean.along.std"]
+    assert math.isnan(vm["n3-s2"]) and vm["n3-s1"] == pytest.approx(0.2) and vm["n2-s1"] == pytest.approx(0.16)
+    assert vm["n1-s1"] == 0.5
+    expected = {
+        (3, "GPS.c1.1.along.std"): [0.10, 0.12, 0.16],
+        (3, "GPS.c1.2.along.std"): [0.20, 0.26],
+        (3, "GPS.vehicles_mean.along.std"): [0.20, np.mean([0.16, 0.26, 0.28])],
+        (2, "GPS.c1.1.along.std"): [0.11, 0.14],
+        (2, "GPS.vehicles_mean.along.std"): [0.16, 0.165],
+        (1, "GPS.c1.1.along.std"): [0.50],
+        (3, "wall_s"): [2.0, 3.0, 4.0],
+    }
+    for (v, metric), x in expected.items():
+        if "vehicles_mean" not in metric:  # (the expected values are the finished runs' own)
+            assert x == pytest.approx(list(ok.loc[ok["n_vehicles"] == v, metric].dropna()))
+        row = agg[(agg["n_vehicles"] == v) & (agg["metric"] == metric)]
+        assert len(row) == 1, (v, metric)  # grid points never pooled, seeds always
+        got = row.iloc[0]
+        for k, want in _independent_cell(x).items():
+            if math.isnan(want):
+                assert math.isnan(got[k]), (v, metric, k)  # one seed: no std, no interval
+            else:
+                assert got[k] == pytest.approx(want, rel=1e-12), (v, metric, k)
+    # a metric with no value in any finished run of a grid point has no row there
+    assert agg[(agg["n_vehicles"] == 2) & (agg["metric"] == "GPS.c1.3.along.std")].empty
+    assert not agg["metric"].isin(["seed", "run_id", "status", "error", "note", "n_vehicles"]).any()
+
+
+def test_report_says_how_many_seeds_a_value_has_and_draws_no_zero_interval(tmp_path, monkeypatch):
+    import matplotlib.axes
+
+    runs = _synthetic_runs()
+    runs.to_parquet(tmp_path / "runs.parquet")
+    (tmp_path / "sweep.json").write_text(json.dumps({"grid_columns": ["n_vehicles"]}))
+    bars: list[dict] = []
+    orig_bar = matplotlib.axes.Axes.bar
+
+    def bar(self, x, height, *args, **kwargs):
+        bars.append({"x": list(x), "mean": list(height), "yerr": list(kwargs.get("yerr")), "ax": self})
+        return orig_bar(self, x, height, *args, **kwargs)
+
+    monkeypatch.setattr(matplotlib.axes.Axes, "bar", bar)
+    assert _cli(["sweep", "report", str(tmp_path)]) == 0
+    md = (tmp_path / "report.md").read_text()
+    # 3 finished seeds at n_vehicles = 3, c1.2 has a std in 2 of them
+    assert "| 3 | GPS | c1.2 | 0.230 ± 0.381 (n = 2) |" in md
+    assert "| 3 | GPS | c1.1 | 0.127 ± 0.076 |" in md
+    assert "| 1 | GPS | c1.1 | 0.500 |" in md
+    along = bars[0]
+    assert along["mean"][2] == 0.5 and math.isnan(along["yerr"][2])  # one seed: no error bar (not one of zero)
+    assert along["ax"].get_xlabel() == "n_vehicles" and along["ax"].get_ylabel() == "along-track error std (m)"
+
+
 def test_flatten_summary_names_columns_solution_vehicle_metric():
     s = {"seed": 3, "wall_s": 1.0, "simulated_s": 5.0, "gnss": {"epochs": 51, "nlos_fraction": None},
          "events": [{"t_s": 1.0}], "table": "x",

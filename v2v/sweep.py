@@ -960,16 +960,25 @@ def _grid_columns(runs_dir: Path, df) -> list[str]:
 
 
 def _with_vehicle_means(df):
-    """Add ``<solution>.vehicles_mean.<comp>.std``: the run's mean over its non-lead vehicles."""
+    """Add ``<solution>.vehicles_mean.<comp>.std``: the run's mean over its non-lead vehicles.
+
+    NaN for a run in which one of its vehicles (one with ``<solution>.<vehicle>.epochs``) has no
+    std (never initialized, or one sample): a mean over the others would average a different set
+    of vehicles in different seeds. A vehicle absent from the run (e.g. a grid point with a
+    smaller cluster) has no epochs and is not one of its vehicles."""
     import pandas as pd
 
-    groups: dict[tuple[str, str], list[str]] = {}
+    groups: dict[tuple[str, str], list[tuple[str, str]]] = {}
     for c in df.columns:
         m = _STD_RE.match(c)
         if m:
-            groups.setdefault((m["sol"], m["comp"]), []).append(c)
-    extra = {f"{sol}.vehicles_mean.{comp}.std": df[cols].mean(axis=1, skipna=True)
-             for (sol, comp), cols in groups.items()}
+            groups.setdefault((m["sol"], m["comp"]), []).append((c, f"{m['sol']}.{m['veh']}.epochs"))
+    extra = {}
+    for (sol, comp), cols in groups.items():
+        std = df[[c for c, _ in cols]]
+        present = pd.DataFrame({c: df[e].notna() if e in df else std[c].notna() for c, e in cols}, index=df.index)
+        incomplete = (present & std.isna()).any(axis=1)
+        extra[f"{sol}.vehicles_mean.{comp}.std"] = std.mean(axis=1, skipna=True).mask(incomplete)
     return pd.concat([df, pd.DataFrame(extra, index=df.index)], axis=1), sorted({s for s, _ in groups})
 
 
@@ -993,10 +1002,12 @@ def aggregate_runs(df, grid_cols: list[str]):
     return pd.DataFrame(records, columns=[*grid_cols, "metric", "n", "mean", "std", "ci95_half", "ci95_low", "ci95_high"])
 
 
-def _fmt(mean: float, half: float) -> str:
+def _fmt(mean: float, half: float, n: int = 0, n_ok: int = 0) -> str:
+    """``mean ± half``; with ``(n = k)`` when fewer of the cell's ``n_ok`` finished runs have a value."""
     if not math.isfinite(mean):
         return "-"
-    return f"{mean:.3f} ± {half:.3f}" if math.isfinite(half) else f"{mean:.3f}"
+    text = f"{mean:.3f} ± {half:.3f}" if math.isfinite(half) else f"{mean:.3f}"
+    return f"{text} (n = {n})" if n < n_ok else text
 
 
 def _md_table(header: list[str], rows: list[list[Any]]) -> list[str]:
@@ -1048,14 +1059,14 @@ def write_report(sweep_dir: str | Path, out_dir: str | Path | None = None) -> Re
     return ReportResult(markdown=md_path, csv=csv_path, figure=png_path, table=agg)
 
 
-def _lookup(agg, grid_cols: list[str], key: tuple, metric: str) -> tuple[float, float]:
+def _lookup(agg, grid_cols: list[str], key: tuple, metric: str) -> tuple[float, float, int]:
     sel = agg["metric"] == metric
     for c, v in zip(grid_cols, key, strict=True):
         sel &= agg[c].isna() if _isnan(v) else agg[c] == v
     hit = agg[sel]
     if hit.empty:
-        return math.nan, math.nan
-    return float(hit["mean"].iloc[0]), float(hit["ci95_half"].iloc[0])
+        return math.nan, math.nan, 0
+    return float(hit["mean"].iloc[0]), float(hit["ci95_half"].iloc[0]), int(hit["n"].iloc[0])
 
 
 def _isnan(v: Any) -> bool:
@@ -1067,14 +1078,16 @@ def _report_markdown(src: Path, df, agg, grid_cols: list[str], solutions: list[s
     n_failed = int((df["status"] != "ok").sum())
     lines = [f"# Sweep report: {src}", "",
              f"{len(df)} runs: {n_ok} ok, {n_failed} failed. Each cell: mean ± half-width of the 95 % "
-             "Student-t confidence interval of the mean across seeds (no interval with one seed).", ""]
+             "Student-t confidence interval of the mean across seeds (no interval with one seed); "
+             "(n = k): only k of the combination's finished runs have a value (failed runs never count).", ""]
     groups = df.groupby(grid_cols, sort=False, dropna=False) if grid_cols else [((), df)]
-    keys, runs_rows = [], []
+    keys, n_oks, runs_rows = [], [], []
     for key, g in groups:
         key = key if isinstance(key, tuple) else (key,)
         keys.append(key)
         ok = g[g["status"] == "ok"]
-        runs_rows.append([*key, len(ok), len(g) - len(ok), _fmt(*_lookup(agg, grid_cols, key, "simulated_s")),
+        n_oks.append(len(ok))
+        runs_rows.append([*key, len(ok), len(g) - len(ok), _fmt(*_lookup(agg, grid_cols, key, "simulated_s"), len(ok)),
                           f"{ok['wall_s'].mean():.2f}" if len(ok) else "-"])
     lines += ["## Runs", ""]
     lines += _md_table([*grid_cols, "ok", "failed", "simulated_s", "mean wall_s"], runs_rows)
@@ -1082,7 +1095,7 @@ def _report_markdown(src: Path, df, agg, grid_cols: list[str], solutions: list[s
     if solutions:
         lines += ["## Relative position error std per solution and vehicle (m)", ""]
         rows = []
-        for key in keys:
+        for key, n_ok in zip(keys, n_oks, strict=True):
             for sol in solutions:
                 vehicles = sorted({m["veh"] for c in agg["metric"].unique() if (m := _STD_RE.match(c)) and m["sol"] == sol})
                 for veh in [*vehicles, "vehicles_mean"]:
@@ -1091,11 +1104,12 @@ def _report_markdown(src: Path, df, agg, grid_cols: list[str], solutions: list[s
                         continue
                     across = _lookup(agg, grid_cols, key, f"{sol}.{veh}.across.std")
                     avail = _lookup(agg, grid_cols, key, f"{sol}.{veh}.availability")
-                    rows.append([*key, sol, veh, _fmt(*along), _fmt(*across), _fmt(*avail)])
+                    rows.append([*key, sol, veh, *(_fmt(*x, n_ok) for x in (along, across, avail))])
         lines += _md_table([*grid_cols, "solution", "vehicle", "along std", "across std", "availability"], rows)
     else:
         lines += ["## GNSS (no solutions were run)", ""]
-        rows = [[*key, *(_fmt(*_lookup(agg, grid_cols, key, m)) for m in _FALLBACK_METRICS)] for key in keys]
+        rows = [[*key, *(_fmt(*_lookup(agg, grid_cols, key, m), n_ok) for m in _FALLBACK_METRICS)]
+                for key, n_ok in zip(keys, n_oks, strict=True)]
         lines += _md_table([*grid_cols, *_FALLBACK_METRICS], rows)
     failed = df[df["status"] != "ok"]
     if len(failed):
@@ -1148,13 +1162,14 @@ def _report_figure(agg, grid_cols: list[str], solutions: list[str], path: Path) 
                 k = ", ".join(str(r[c]) for c in x_cols) or "all runs"
                 xs.append(xkeys.index(k) + (j - (len(series) - 1) / 2) * width)
                 ys.append(r["mean"])
-                es.append(r["ci95_half"] if math.isfinite(r["ci95_half"]) else 0.0)
+                es.append(r["ci95_half"])  # NaN (one seed): no error bar, rather than one of zero width
             ax.bar(xs, ys, width=width * 0.95, yerr=es, capsize=4, label=sol or None)
         ax.set_xticks(np.arange(len(xkeys)), xkeys, rotation=20, ha="right")
         ax.set_ylabel(ylabel)
+        ax.set_xlabel(", ".join(x_cols))
         ax.grid(axis="y", alpha=0.3)
         if solutions:
-            ax.set_title(f"{panel}: mean over vehicles, 95 % CI across seeds")
+            ax.set_title(f"{panel}: mean over vehicles, 95 % CI across seeds (none: one seed)")
             ax.legend(fontsize=8)
     fig.tight_layout()
     fig.savefig(path, format="png", dpi=120)
