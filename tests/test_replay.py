@@ -871,3 +871,165 @@ def test_truth_and_links_windows_match_a_per_step_scan():
     assert logged.count(3) == 2 and logged.count(2) == 1
     assert set(range(len(t_rec))) - set(logged) == {0, 5, 8, 9, 11, 12}
     assert [c[1] for c in lg.calls if c[0] == "truth"] == [st.t_s for st in steps]
+
+
+# ---------------------------------------------------------------------------- a real run against its tables
+
+TWO_CLUSTERS_TOML = """
+name = "two_clusters"
+seed = 5
+duration_s = 6.0
+
+[network]
+name = "open_highway"
+
+[[clusters]]
+name = "a"
+vehicles = 3
+lanes = [0]
+
+[[clusters]]
+name = "b"
+vehicles = 3
+lanes = [1]
+depart_s = 4.0
+
+[[solutions]]
+name = "GPS"
+sensors = ["gnss"]
+
+[[solutions]]
+name = "GPS+UWB"
+sensors = ["gnss", "uwb"]
+"""
+
+
+@pytest.fixture(scope="module")
+def real_run(tmp_path_factory):
+    """A short two-cluster run of the shipped open_highway net (origin_h_m 1100 m: ENU metres
+    are 1.7e-4 longer than net XY metres there), read back with its tables."""
+    import pandas as pd
+
+    from v2v.config.scenario import load_scenario
+    from v2v.run import run_scenario
+
+    folder = tmp_path_factory.mktemp("real")
+    (folder / "two.toml").write_text(TWO_CLUSTERS_TOML)
+    res = run_scenario(load_scenario(folder / "two.toml"), folder / "run", quiet=True, replay=True)
+    out = folder / "run"
+    return (_read(out / "replay.rrd"), pd.read_parquet(out / "truth.parquet"), pd.read_parquet(out / "epochs.parquet"),
+            res.summary)
+
+
+def _rows_at(chunks):
+    """{time_ns: {component: value}} of temporal rows (the last row logged at a time, as the viewer shows)."""
+    out: dict[int, dict] = {}
+    for c in chunks:
+        if c.is_static:
+            continue
+        rb = c.to_record_batch()
+        names = [n for n in rb.schema.names if ":" in n]
+        cols = {n: rb.column(n).to_pylist() for n in names}
+        for i, t in enumerate(rb.column(bp.TIMELINE).cast("int64").to_pylist()):
+            out.setdefault(t, {}).update({n: cols[n][i] for n in names if cols[n][i] is not None})
+    return out
+
+
+def _grid_convergence_from_tables(truth, epochs) -> float:
+    """Angle from the true ENU baselines (east, north) of epochs.parquet to the same vehicles'
+    net-XY baselines in truth.parquet: the grid convergence, estimated from the tables alone."""
+    xy = truth.set_index(["t_s", "vehicle"])[["x_m", "y_m"]]
+    lead = truth[truth.is_lead].set_index(["t_s", "cluster"])[["x_m", "y_m"]]
+    f = xy.loc[list(zip(epochs.t_s, epochs.vehicle, strict=True))].to_numpy()
+    ld = lead.loc[list(zip(epochs.t_s, epochs.cluster, strict=True))].to_numpy()
+    d = (f - ld)[:, 0] + 1j * (f - ld)[:, 1]
+    enu = epochs.true_e_m.to_numpy() + 1j * epochs.true_n_m.to_numpy()
+    return float(np.angle(np.mean(d / enu * np.abs(enu) / np.abs(d))))
+
+
+def test_real_run_truth_and_times_are_the_tables(real_run):
+    """Antennas and map points are truth.parquet's (net XY m, WGS-84 deg); the boxes carry its
+    vehicles at every step; nothing is logged outside [0, simulated_s]; no position is NaN."""
+    chunks, truth, _, summary = real_run
+    ants, boxes, geo = (_rows_at(chunks["/" + p]) for p in (bp.TRUTH_ANTENNAS, bp.TRUTH, bp.MAP_VEHICLES))
+    times = np.sort(truth.t_s.unique())
+    np.testing.assert_allclose(np.array(sorted(ants)) / 1e9, times, atol=1e-9, rtol=0)
+    by_t = {round(t * 1e9): g.set_index("vehicle") for t, g in truth.groupby("t_s")}
+    for t_ns, row in boxes.items():
+        g = by_t[t_ns]
+        labels = row["Boxes3D:labels"]
+        assert sorted(labels) == sorted(g.index)
+        # float32 positions: |x|, |y| < 2048 m, spacing 2**-13 m, rounding <= 6.2e-5 m
+        np.testing.assert_allclose(ants[t_ns]["Points3D:positions"], g.loc[labels, ["x_m", "y_m", "z_m"]], atol=6.2e-5,
+                                   rtol=0)
+        np.testing.assert_allclose(geo[t_ns]["GeoPoints:positions"], g.loc[labels, ["lat_deg", "lon_deg"]], atol=1e-12,
+                                   rtol=0)
+    for path, cs in chunks.items():
+        for c in cs:
+            rb = c.to_record_batch()
+            if not c.is_static:
+                t = rb.column(bp.TIMELINE).cast("int64").to_numpy() / 1e9
+                assert t.min() >= 0.0 and t.max() <= summary["simulated_s"] + 1e-9, path
+            for name in rb.schema.names:
+                if name.split(":")[-1] in ("positions", "centers", "half_sizes", "strips", "vertex_positions"):
+                    vals = np.array(pa_flatten(rb.column(name)), dtype=float)
+                    assert np.isfinite(vals).all(), (path, name)
+
+
+def pa_flatten(col):
+    """All numbers of a (nested) arrow list column."""
+    import pyarrow as pa
+
+    arr = col.combine_chunks() if hasattr(col, "combine_chunks") else col
+    while pa.types.is_list(arr.type) or pa.types.is_fixed_size_list(arr.type) or pa.types.is_large_list(arr.type):
+        arr = arr.flatten()
+    return arr.to_numpy(zero_copy_only=False)
+
+
+def test_real_run_estimates_ellipses_and_errors_are_the_epochs(real_run):
+    """Per solution and cluster (two clusters: each its own entity, so that neither hides the
+    other): at every epoch the drawn estimates are the initialized vehicles of epochs.parquet;
+    estimate - the vehicle's true antenna (truth.parquet) = (est - true) ENU turned by the grid
+    convergence, as the lead frame's errors are; the ellipse semi-axes are
+    sqrt(chi2.ppf(0.95, 2)) sqrt(eigenvalues) of (cov_ee, cov_en; cov_en, cov_nn) along its
+    eigenvectors; the error series are the epochs' along / across errors, +-sigma and NEES."""
+    chunks, truth, epochs, _ = real_run
+    ini = epochs[epochs.initialized]
+    assert set(ini.cluster) == {"a", "b"} and len(ini)
+    gamma = _grid_convergence_from_tables(truth, ini)
+    rot = rotation_2d(gamma)
+    k95 = math.sqrt(chi2.ppf(0.95, 2))
+    xy = truth.set_index(["t_s", "vehicle"])[["x_m", "y_m"]]
+    for (sol, cl), e in ini.groupby(["solution", "cluster"]):
+        pts = _rows_at(chunks[bp.estimates_path(sol, cl)])
+        ell = _rows_at(chunks[bp.ellipses_path(sol, cl)])
+        by_t = {round(t * 1e9): g.set_index("vehicle") for t, g in e.groupby("t_s")}
+        assert sorted(pts) == sorted(by_t) == sorted(ell), (sol, cl)
+        for t_ns, g in by_t.items():
+            labels = pts[t_ns]["Points3D:labels"]
+            assert sorted(labels) == sorted(g.index)
+            r = g.loc[labels]
+            drawn = np.asarray(pts[t_ns]["Points3D:positions"])[:, :2]
+            true_xy = xy.loc[[(r.t_s.iat[0], v) for v in labels]].to_numpy()
+            err_en = np.column_stack([r.est_e_m - r.true_e_m, r.est_n_m - r.true_n_m])
+            np.testing.assert_allclose(drawn - true_xy, err_en @ rot.T, atol=2e-4, rtol=0)
+            np.testing.assert_allclose(np.asarray(ell[t_ns]["Ellipsoids3D:centers"]), pts[t_ns]["Points3D:positions"],
+                                       atol=0)
+            for j, (_, row) in enumerate(r.iterrows()):
+                lam, vec = np.linalg.eigh([[row.cov_ee_m2, row.cov_en_m2], [row.cov_en_m2, row.cov_nn_m2]])
+                half = ell[t_ns]["Ellipsoids3D:half_sizes"][j]
+                np.testing.assert_allclose(half[:2], k95 * np.sqrt(lam[::-1]), rtol=1e-6)
+                major = _quat_matrix(ell[t_ns]["Ellipsoids3D:quaternions"][j])[:2, 0]
+                want = rot @ vec[:, 1]
+                if lam[1] > 1.001 * lam[0]:
+                    assert abs(major @ want) == pytest.approx(1.0, abs=1e-6)
+        for v, ev in e.groupby("vehicle"):
+            ev = ev.sort_values("t_s")
+            series = {s: _column(chunks[bp.error_path(sol, v, s)], "Scalars:scalars") for s in
+                      ("along", "across", "along_sigma", "across_sigma", "nees")}
+            np.testing.assert_allclose(np.asarray(series["along"][0]) / 1e9, ev.t_s, atol=1e-9, rtol=0)  # ns
+            assert [x[0] for x in series["along"][1]] == ev.along_err_m.tolist()
+            assert [x[0] for x in series["across"][1]] == ev.across_err_m.tolist()
+            assert series["along_sigma"][1] == [[s, -s] for s in ev.sigma_along_m]
+            assert series["across_sigma"][1] == [[s, -s] for s in ev.sigma_across_m]
+            assert [x[0] for x in series["nees"][1]] == ev.nees_pos.tolist()
