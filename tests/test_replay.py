@@ -839,7 +839,8 @@ def test_default_batch_methods_make_the_per_step_calls():
 def test_truth_and_links_windows_match_a_per_step_scan():
     """v2v.run._log_truth_and_links (vectorized over a chunk) logs at each step the links
     measured in (previous step, step + 1e-9] between vehicles present at that step, as a
-    scan step by step does; a record 0.5 ns after a step belongs to that step and the next."""
+    scan step by step does (a step without links too: an empty row); a record 0.5 ns after a
+    step belongs to that step and the next."""
     from v2v.run import _log_truth_and_links
 
     steps = _steps(8)
@@ -858,10 +859,10 @@ def test_truth_and_links_windows_match_a_per_step_scan():
         idx = [k for k in np.argsort(meas.t_s, kind="stable")
                if p < meas.t_s[k] <= st.t_s + 1e-9 and meas.a[k] in st.vehicles and meas.b[k] in st.vehicles]
         logged += [int(perm[k]) for k in idx]
-        if idx:
-            expected.append(("links", st.t_s, "uwb", [st.vehicles[meas.a[k]].xyz_m.tolist() for k in idx],
-                             [st.vehicles[meas.b[k]].xyz_m.tolist() for k in idx],
-                             ["los" if meas.los[k] else "nlos" for k in idx]))
+        # every step, one without links too: its empty row clears the links drawn before
+        expected.append(("links", st.t_s, "uwb", [st.vehicles[meas.a[k]].xyz_m.tolist() for k in idx],
+                         [st.vehicles[meas.b[k]].xyz_m.tolist() for k in idx],
+                         ["los" if meas.los[k] else "nlos" for k in idx]))
         p = st.t_s
     got = [c for c in lg.calls if c[0] == "links"]
     assert got == expected
@@ -901,6 +902,9 @@ sensors = ["gnss"]
 [[solutions]]
 name = "GPS+UWB"
 sensors = ["gnss", "uwb"]
+
+[sensors.bearing]
+rate_hz = 2.0
 """
 
 
@@ -915,10 +919,11 @@ def real_run(tmp_path_factory):
 
     folder = tmp_path_factory.mktemp("real")
     (folder / "two.toml").write_text(TWO_CLUSTERS_TOML)
-    res = run_scenario(load_scenario(folder / "two.toml"), folder / "run", quiet=True, replay=True)
+    res = run_scenario(load_scenario(folder / "two.toml"), folder / "run", quiet=True, replay=True,
+                       save_measurements=True)
     out = folder / "run"
     return (_read(out / "replay.rrd"), pd.read_parquet(out / "truth.parquet"), pd.read_parquet(out / "epochs.parquet"),
-            res.summary)
+            res.summary, pd.read_parquet(out / "measurements.parquet"))
 
 
 def _rows_at(chunks):
@@ -950,7 +955,7 @@ def _grid_convergence_from_tables(truth, epochs) -> float:
 def test_real_run_truth_and_times_are_the_tables(real_run):
     """Antennas and map points are truth.parquet's (net XY m, WGS-84 deg); the boxes carry its
     vehicles at every step; nothing is logged outside [0, simulated_s]; no position is NaN."""
-    chunks, truth, _, summary = real_run
+    chunks, truth, _, summary, _ = real_run
     ants, boxes, geo = (_rows_at(chunks["/" + p]) for p in (bp.TRUTH_ANTENNAS, bp.TRUTH, bp.MAP_VEHICLES))
     times = np.sort(truth.t_s.unique())
     np.testing.assert_allclose(np.array(sorted(ants)) / 1e9, times, atol=1e-9, rtol=0)
@@ -993,7 +998,7 @@ def test_real_run_estimates_ellipses_and_errors_are_the_epochs(real_run):
     convergence, as the lead frame's errors are; the ellipse semi-axes are
     sqrt(chi2.ppf(0.95, 2)) sqrt(eigenvalues) of (cov_ee, cov_en; cov_en, cov_nn) along its
     eigenvectors; the error series are the epochs' along / across errors, +-sigma and NEES."""
-    chunks, truth, epochs, _ = real_run
+    chunks, truth, epochs, _, _ = real_run
     ini = epochs[epochs.initialized]
     assert set(ini.cluster) == {"a", "b"} and len(ini)
     gamma = _grid_convergence_from_tables(truth, ini)
@@ -1033,3 +1038,29 @@ def test_real_run_estimates_ellipses_and_errors_are_the_epochs(real_run):
             assert series["along_sigma"][1] == [[s, -s] for s in ev.sigma_along_m]
             assert series["across_sigma"][1] == [[s, -s] for s in ev.sigma_across_m]
             assert [x[0] for x in series["nees"][1]] == ev.nees_pos.tolist()
+
+
+def test_real_run_links_are_the_steps_measurements(real_run):
+    """At every step the links drawn (the row at that step: none is left from an earlier step)
+    join antennas of truth.parquet at that step; bearings (2 Hz, time-tagged at steps) are the
+    measurements.parquet rows of that step between cluster vehicles, NLOS ones orange."""
+    chunks, truth, _, _, meas = real_run
+    steps = sorted(round(t * 1e9) for t in truth.t_s.unique())
+    ants = _rows_at(chunks["/" + bp.TRUTH_ANTENNAS])
+    for kind in ("uwb", "bearing"):
+        links = _rows_at(chunks[bp.links_path(kind)])
+        first = min(links)
+        assert [t for t in steps if t >= first] == sorted(links), kind  # a row at every step from the first
+        for t in sorted(links):
+            strips = links[t].get("LineStrips3D:strips", [])
+            ends = np.asarray(strips, dtype=float).reshape(-1, 3)
+            a = np.asarray(ants[t]["Points3D:positions"])
+            assert all(np.min(np.linalg.norm(a - p, axis=1)) == 0.0 for p in ends), (kind, t)
+    bearings = _rows_at(chunks[bp.links_path("bearing")])
+    b = meas[(meas.type == "bearing") & meas.vehicle.isin(truth.vehicle) & meas.other.isin(truth.vehicle)]
+    for t in steps:
+        rows = b[np.round(b.t_s * 1e9) == t]
+        colors = bearings.get(t, {}).get("LineStrips3D:colors", [])
+        assert len(colors) == len(rows) if t in bearings else len(rows) == 0
+        nlos_rgba = (255 << 24) | (150 << 16) | (30 << 8) | 255
+        assert sum(c == nlos_rgba for c in colors) == int((~rows.los).sum())

@@ -47,7 +47,10 @@ What ``v2v run`` logs (``v2v.run``): estimates and errors only for initialized v
 each estimate is drawn at its vehicle's true antenna plus its error (``est - true`` ENU,
 turned into net XY by the grid convergence), so its offset from the drawn truth is the
 ``epochs.parquet`` error; ``n_sats`` is ``used_pr`` and ``rejections`` the sum of the
-``rejected_*`` counts of pr, doppler, uwb and bearing.
+``rejected_*`` counts of pr, doppler, uwb and bearing. Links: at every step the UWB ranges
+and bearings measured since the previous step between vehicles present at it (an empty row
+when there are none, so that no earlier step's links stay drawn), LOS or NLOS ("rejected" is
+never logged by ``v2v run``).
 
 Colours: line of sight green, NLOS orange, rejected red; lead vehicle orange, other
 cluster vehicles blue, background traffic grey. Each error series carries its own style
