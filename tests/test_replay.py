@@ -1064,3 +1064,37 @@ def test_real_run_links_are_the_steps_measurements(real_run):
         assert len(colors) == len(rows) if t in bearings else len(rows) == 0
         nlos_rgba = (255 << 24) | (150 << 16) | (30 << 8) | 255
         assert sum(c == nlos_rgba for c in colors) == int((~rows.los).sum())
+
+
+def test_an_epoch_without_initialized_vehicles_clears_the_estimates(tmp_path):
+    """v2v.run's epoch logger: an epoch whose rows are all uninitialized (after an estimate was
+    drawn) is an empty estimates and ellipses row, so the viewer does not keep showing the
+    estimate of the epoch before; the error series just have no point there."""
+    import pandas as pd
+
+    from v2v.run import _epoch_logger
+
+    t = [0.0, 0.1, 0.2]
+    frame = pd.DataFrame({
+        "t_s": t, "vehicle": "veh.1", "initialized": [True, False, True],
+        "est_e_m": [1.0, np.nan, 2.0], "est_n_m": [0.0, np.nan, 0.0], "true_e_m": 0.0, "true_n_m": 0.0,
+        "cov_ee_m2": [1.0, np.nan, 1.0], "cov_en_m2": [0.0, np.nan, 0.0], "cov_nn_m2": [1.0, np.nan, 1.0],
+        "along_err_m": [0.1, np.nan, 0.2], "across_err_m": 0.0, "sigma_along_m": 1.0, "sigma_across_m": 1.0,
+        "nees_pos": 1.0, "used_pr": 8, "rejected_pr": 0, "rejected_uwb": 0, "rejected_bearing": 0,
+        "rejected_doppler": 0,
+    })
+    steps = {round(x * 1e6): TrafficStep(t_s=x, vehicles={
+        "lead": _state("lead", x, (0.0, 0.0), 0.0, lead=True), "veh.1": _state("veh.1", x, (0.0, -20.0), 0.0, lead=False)})
+        for x in t}
+    path = tmp_path / "r.rrd"
+    with RerunReplayLogger(path) as lg:
+        _epoch_logger(lg, GEO, {"replay": 0.0})("GPS", "lead", frame, lambda x: steps[round(x * 1e6)])
+    chunks = _read(path)
+    t_ns, pos = _column(chunks[bp.estimates_path("GPS")], "Points3D:positions")
+    assert [round(x / 1e8) for x in t_ns] == [0, 1, 2] and [len(p) for p in pos] == [1, 0, 1]
+    _, half = _column(chunks[bp.ellipses_path("GPS")], "Ellipsoids3D:half_sizes")
+    assert [len(h) for h in half] == [1, 0, 1]
+    # drawn at the true antenna plus the error (east 1 m, 2 m; no grid convergence at the origin)
+    np.testing.assert_allclose([pos[0][0][:2], pos[2][0][:2]], [[1.0, -20.0], [2.0, -20.0]], atol=F32_ABS_M)
+    t_err, along = _column(chunks[bp.error_path("GPS", "veh.1", "along")], "Scalars:scalars")
+    assert [round(x / 1e8) for x in t_err] == [0, 2] and along == [[0.1], [0.2]]

@@ -1021,6 +1021,7 @@ def _epoch_logger(logger, georef: GeoReference, timing: dict[str, float]):
     antenna at that epoch, ``truth_at``) and their errors, in one :meth:`log_epochs` call; its
     time is added to ``timing["replay"]``."""
     cache: dict[str, tuple[float, float]] = {}  # cos, sin of the grid convergence at the first lead position
+    shown: set[tuple[str, str]] = set()  # (solution, cluster) with estimates logged
     error_columns = ("along_err_m", "across_err_m", "sigma_along_m", "sigma_across_m", "nees_pos")
     rejected = ("rejected_pr", "rejected_uwb", "rejected_bearing", "rejected_doppler")
 
@@ -1032,22 +1033,29 @@ def _epoch_logger(logger, georef: GeoReference, timing: dict[str, float]):
             timing["replay"] += time.perf_counter() - t0
 
     def log_frame(solution: str, lead: str, frame: pd.DataFrame, truth_at, cluster: str) -> None:
-        if not cache and len(frame):  # the first epoch logged, initialized vehicles or not
+        if "cos_sin" not in cache and len(frame):  # the first epoch logged, initialized vehicles or not
             x0, y0 = truth_at(float(frame["t_s"].iat[0])).vehicles[lead].xyz_m[:2]
             g = georef.grid_convergence_rad(float(x0), float(y0))
             cache["cos_sin"] = (np.cos(g), np.sin(g))
-        rows = frame[frame["initialized"].to_numpy(dtype=bool)]
-        if rows.empty:
+        ini = frame["initialized"].to_numpy(dtype=bool)
+        rows = frame[ini]
+        # every epoch, one without an initialized vehicle too (an empty row: the viewer shows the
+        # latest row, so the estimates drawn before would stay), once a vehicle has been
+        t_all = frame["t_s"].to_numpy(dtype=float)
+        new_epoch = np.concatenate([[True], t_all[1:] != t_all[:-1]]) if len(t_all) else np.zeros(0, dtype=bool)
+        epoch_of = np.cumsum(new_epoch) - 1
+        counts = np.bincount(epoch_of[ini], minlength=int(new_epoch.sum()))
+        if rows.empty and (solution, cluster) not in shown:
             return
+        shown.add((solution, cluster))
         t = rows["t_s"].to_numpy(dtype=float)
-        starts = np.flatnonzero(np.concatenate([[True], t[1:] != t[:-1]]))  # epochs (rows in time order)
-        counts = np.diff(np.append(starts, len(t)))
+        t_epochs = t_all[new_epoch]
         # each estimate is drawn at its vehicle's true antenna plus the error (est - true, ENU turned by
         # the grid convergence): the drawn gap to the true antenna is the epochs' error. The lead's
         # antenna plus the ENU baseline would put it off by the baseline times the scale between ENU
         # metres and net XY metres (the projection's, and R / (R + h) at the net's height: 1.7e-4 at
         # 1100 m, 4 cm at 240 m) and by the grid convergence's change since the first epoch
-        steps = [truth_at(float(te)).vehicles for te in t[starts]]
+        steps = [truth_at(float(te)).vehicles for te in t_epochs]
         vehicles = rows["vehicle"].tolist()
         c, s = cache["cos_sin"]
         e, n = rows["est_e_m"].to_numpy(dtype=float), rows["est_n_m"].to_numpy(dtype=float)
@@ -1068,6 +1076,6 @@ def _epoch_logger(logger, georef: GeoReference, timing: dict[str, float]):
         errors = np.column_stack([*(rows[k].to_numpy(dtype=float) for k in error_columns), np.full(len(t), np.nan),
                                   rows["used_pr"].to_numpy(dtype=float),
                                   sum(rows[k].to_numpy(dtype=float) for k in rejected)])
-        logger.log_epochs(t[starts], solution, counts, vehicles, xy, cov, errors, cluster)
+        logger.log_epochs(t_epochs, solution, counts, vehicles, xy, cov, errors, cluster)
 
     return log_epochs

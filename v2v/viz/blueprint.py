@@ -43,7 +43,8 @@ A run with several clusters logs each cluster's estimates and ellipses on its ow
 entity per solution would hold a row per cluster at each time, and the viewer shows the last
 row logged at a time: one cluster's estimates only).
 
-What ``v2v run`` logs (``v2v.run``): estimates and errors only for initialized vehicles;
+What ``v2v run`` logs (``v2v.run``): estimates and errors only for initialized vehicles (an
+epoch without any, after some were drawn, is an empty estimates row, which clears them);
 each estimate is drawn at its vehicle's true antenna plus its error (``est - true`` ENU,
 turned into net XY by the grid convergence), so its offset from the drawn truth is the
 ``epochs.parquet`` error; ``n_sats`` is ``used_pr`` and ``rejections`` the sum of the
