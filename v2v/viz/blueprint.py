@@ -7,7 +7,8 @@ Entity paths (``<sol>`` = solution name, ``<veh>`` = vehicle id, both escaped wi
 ==================================  ===============  ======================================
 path                                archetype        content
 ==================================  ===============  ======================================
-``world/lanes``                     LineStrips3D     lane centre lines, z = 0 (static)
+``world/lanes``                     LineStrips3D     lane centre lines, z = 0.02 m, just
+                                                     above the surface (static)
 ``world/lanes/surface``             Mesh3D           lane surfaces: centre line buffered by
                                                      half the lane width (static)
 ``world/buildings``                 Mesh3D           extruded footprints, roofs + walls
