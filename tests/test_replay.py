@@ -839,7 +839,8 @@ def test_default_batch_methods_make_the_per_step_calls():
 def test_truth_and_links_windows_match_a_per_step_scan():
     """v2v.run._log_truth_and_links (vectorized over a chunk) logs at each step the links
     measured in (previous step, step + 1e-9] between vehicles present at that step, as a
-    scan step by step does; a record 0.5 ns after a step belongs to that step and the next."""
+    scan step by step does (a step without links too: an empty row); a record 0.5 ns after a
+    step belongs to that step and the next."""
     from v2v.run import _log_truth_and_links
 
     steps = _steps(8)
@@ -858,10 +859,10 @@ def test_truth_and_links_windows_match_a_per_step_scan():
         idx = [k for k in np.argsort(meas.t_s, kind="stable")
                if p < meas.t_s[k] <= st.t_s + 1e-9 and meas.a[k] in st.vehicles and meas.b[k] in st.vehicles]
         logged += [int(perm[k]) for k in idx]
-        if idx:
-            expected.append(("links", st.t_s, "uwb", [st.vehicles[meas.a[k]].xyz_m.tolist() for k in idx],
-                             [st.vehicles[meas.b[k]].xyz_m.tolist() for k in idx],
-                             ["los" if meas.los[k] else "nlos" for k in idx]))
+        # every step, one without links too: its empty row clears the links drawn before
+        expected.append(("links", st.t_s, "uwb", [st.vehicles[meas.a[k]].xyz_m.tolist() for k in idx],
+                         [st.vehicles[meas.b[k]].xyz_m.tolist() for k in idx],
+                         ["los" if meas.los[k] else "nlos" for k in idx]))
         p = st.t_s
     got = [c for c in lg.calls if c[0] == "links"]
     assert got == expected
@@ -871,3 +872,229 @@ def test_truth_and_links_windows_match_a_per_step_scan():
     assert logged.count(3) == 2 and logged.count(2) == 1
     assert set(range(len(t_rec))) - set(logged) == {0, 5, 8, 9, 11, 12}
     assert [c[1] for c in lg.calls if c[0] == "truth"] == [st.t_s for st in steps]
+
+
+# ---------------------------------------------------------------------------- a real run against its tables
+
+TWO_CLUSTERS_TOML = """
+name = "two_clusters"
+seed = 5
+duration_s = 6.0
+
+[network]
+name = "open_highway"
+
+[[clusters]]
+name = "a"
+vehicles = 3
+lanes = [0]
+
+[[clusters]]
+name = "b"
+vehicles = 3
+lanes = [1]
+depart_s = 4.0
+
+[[solutions]]
+name = "GPS"
+sensors = ["gnss"]
+
+[[solutions]]
+name = "GPS+UWB"
+sensors = ["gnss", "uwb"]
+
+[sensors.bearing]
+rate_hz = 2.0
+"""
+
+
+@pytest.fixture(scope="module")
+def real_run(tmp_path_factory):
+    """A short two-cluster run of the shipped open_highway net (origin_h_m 1100 m: ENU metres
+    are 1.7e-4 longer than net XY metres there), read back with its tables."""
+    import pandas as pd
+
+    from v2v.config.scenario import load_scenario
+    from v2v.run import run_scenario
+
+    folder = tmp_path_factory.mktemp("real")
+    (folder / "two.toml").write_text(TWO_CLUSTERS_TOML)
+    res = run_scenario(load_scenario(folder / "two.toml"), folder / "run", quiet=True, replay=True,
+                       save_measurements=True)
+    out = folder / "run"
+    return (_read(out / "replay.rrd"), pd.read_parquet(out / "truth.parquet"), pd.read_parquet(out / "epochs.parquet"),
+            res.summary, pd.read_parquet(out / "measurements.parquet"))
+
+
+def _rows_at(chunks):
+    """{time_ns: {component: value}} of temporal rows (the last row logged at a time, as the viewer shows)."""
+    out: dict[int, dict] = {}
+    for c in chunks:
+        if c.is_static:
+            continue
+        rb = c.to_record_batch()
+        names = [n for n in rb.schema.names if ":" in n]
+        cols = {n: rb.column(n).to_pylist() for n in names}
+        for i, t in enumerate(rb.column(bp.TIMELINE).cast("int64").to_pylist()):
+            out.setdefault(t, {}).update({n: cols[n][i] for n in names if cols[n][i] is not None})
+    return out
+
+
+def _grid_convergence_from_tables(truth, epochs) -> float:
+    """Angle from the true ENU baselines (east, north) of epochs.parquet to the same vehicles'
+    net-XY baselines in truth.parquet: the grid convergence, estimated from the tables alone."""
+    xy = truth.set_index(["t_s", "vehicle"])[["x_m", "y_m"]]
+    lead = truth[truth.is_lead].set_index(["t_s", "cluster"])[["x_m", "y_m"]]
+    f = xy.loc[list(zip(epochs.t_s, epochs.vehicle, strict=True))].to_numpy()
+    ld = lead.loc[list(zip(epochs.t_s, epochs.cluster, strict=True))].to_numpy()
+    d = (f - ld)[:, 0] + 1j * (f - ld)[:, 1]
+    enu = epochs.true_e_m.to_numpy() + 1j * epochs.true_n_m.to_numpy()
+    return float(np.angle(np.mean(d / enu * np.abs(enu) / np.abs(d))))
+
+
+def test_real_run_truth_and_times_are_the_tables(real_run):
+    """Antennas and map points are truth.parquet's (net XY m, WGS-84 deg); the boxes carry its
+    vehicles at every step; nothing is logged outside [0, simulated_s]; no position is NaN."""
+    chunks, truth, _, summary, _ = real_run
+    ants, boxes, geo = (_rows_at(chunks["/" + p]) for p in (bp.TRUTH_ANTENNAS, bp.TRUTH, bp.MAP_VEHICLES))
+    times = np.sort(truth.t_s.unique())
+    np.testing.assert_allclose(np.array(sorted(ants)) / 1e9, times, atol=1e-9, rtol=0)
+    by_t = {round(t * 1e9): g.set_index("vehicle") for t, g in truth.groupby("t_s")}
+    for t_ns, row in boxes.items():
+        g = by_t[t_ns]
+        labels = row["Boxes3D:labels"]
+        assert sorted(labels) == sorted(g.index)
+        # float32 positions: |x|, |y| < 2048 m, spacing 2**-13 m, rounding <= 6.2e-5 m
+        np.testing.assert_allclose(ants[t_ns]["Points3D:positions"], g.loc[labels, ["x_m", "y_m", "z_m"]], atol=6.2e-5,
+                                   rtol=0)
+        np.testing.assert_allclose(geo[t_ns]["GeoPoints:positions"], g.loc[labels, ["lat_deg", "lon_deg"]], atol=1e-12,
+                                   rtol=0)
+    for path, cs in chunks.items():
+        for c in cs:
+            rb = c.to_record_batch()
+            if not c.is_static:
+                t = rb.column(bp.TIMELINE).cast("int64").to_numpy() / 1e9
+                assert t.min() >= 0.0 and t.max() <= summary["simulated_s"] + 1e-9, path
+            for name in rb.schema.names:
+                if name.split(":")[-1] in ("positions", "centers", "half_sizes", "strips", "vertex_positions"):
+                    vals = np.array(pa_flatten(rb.column(name)), dtype=float)
+                    assert np.isfinite(vals).all(), (path, name)
+
+
+def pa_flatten(col):
+    """All numbers of a (nested) arrow list column."""
+    import pyarrow as pa
+
+    arr = col.combine_chunks() if hasattr(col, "combine_chunks") else col
+    while pa.types.is_list(arr.type) or pa.types.is_fixed_size_list(arr.type) or pa.types.is_large_list(arr.type):
+        arr = arr.flatten()
+    return arr.to_numpy(zero_copy_only=False)
+
+
+def test_real_run_estimates_ellipses_and_errors_are_the_epochs(real_run):
+    """Per solution and cluster (two clusters: each its own entity, so that neither hides the
+    other): at every epoch the drawn estimates are the initialized vehicles of epochs.parquet;
+    estimate - the vehicle's true antenna (truth.parquet) = (est - true) ENU turned by the grid
+    convergence, as the lead frame's errors are; the ellipse semi-axes are
+    sqrt(chi2.ppf(0.95, 2)) sqrt(eigenvalues) of (cov_ee, cov_en; cov_en, cov_nn) along its
+    eigenvectors; the error series are the epochs' along / across errors, +-sigma and NEES."""
+    chunks, truth, epochs, _, _ = real_run
+    ini = epochs[epochs.initialized]
+    assert set(ini.cluster) == {"a", "b"} and len(ini)
+    gamma = _grid_convergence_from_tables(truth, ini)
+    rot = rotation_2d(gamma)
+    k95 = math.sqrt(chi2.ppf(0.95, 2))
+    xy = truth.set_index(["t_s", "vehicle"])[["x_m", "y_m"]]
+    for (sol, cl), e in ini.groupby(["solution", "cluster"]):
+        pts = _rows_at(chunks[bp.estimates_path(sol, cl)])
+        ell = _rows_at(chunks[bp.ellipses_path(sol, cl)])
+        by_t = {round(t * 1e9): g.set_index("vehicle") for t, g in e.groupby("t_s")}
+        assert sorted(pts) == sorted(by_t) == sorted(ell), (sol, cl)
+        for t_ns, g in by_t.items():
+            labels = pts[t_ns]["Points3D:labels"]
+            assert sorted(labels) == sorted(g.index)
+            r = g.loc[labels]
+            drawn = np.asarray(pts[t_ns]["Points3D:positions"])[:, :2]
+            true_xy = xy.loc[[(r.t_s.iat[0], v) for v in labels]].to_numpy()
+            err_en = np.column_stack([r.est_e_m - r.true_e_m, r.est_n_m - r.true_n_m])
+            np.testing.assert_allclose(drawn - true_xy, err_en @ rot.T, atol=2e-4, rtol=0)
+            np.testing.assert_allclose(np.asarray(ell[t_ns]["Ellipsoids3D:centers"]), pts[t_ns]["Points3D:positions"],
+                                       atol=0)
+            for j, (_, row) in enumerate(r.iterrows()):
+                lam, vec = np.linalg.eigh([[row.cov_ee_m2, row.cov_en_m2], [row.cov_en_m2, row.cov_nn_m2]])
+                half = ell[t_ns]["Ellipsoids3D:half_sizes"][j]
+                np.testing.assert_allclose(half[:2], k95 * np.sqrt(lam[::-1]), rtol=1e-6)
+                major = _quat_matrix(ell[t_ns]["Ellipsoids3D:quaternions"][j])[:2, 0]
+                want = rot @ vec[:, 1]
+                if lam[1] > 1.001 * lam[0]:
+                    assert abs(major @ want) == pytest.approx(1.0, abs=1e-6)
+        for v, ev in e.groupby("vehicle"):
+            ev = ev.sort_values("t_s")
+            series = {s: _column(chunks[bp.error_path(sol, v, s)], "Scalars:scalars") for s in
+                      ("along", "across", "along_sigma", "across_sigma", "nees")}
+            np.testing.assert_allclose(np.asarray(series["along"][0]) / 1e9, ev.t_s, atol=1e-9, rtol=0)  # ns
+            assert [x[0] for x in series["along"][1]] == ev.along_err_m.tolist()
+            assert [x[0] for x in series["across"][1]] == ev.across_err_m.tolist()
+            assert series["along_sigma"][1] == [[s, -s] for s in ev.sigma_along_m]
+            assert series["across_sigma"][1] == [[s, -s] for s in ev.sigma_across_m]
+            assert [x[0] for x in series["nees"][1]] == ev.nees_pos.tolist()
+
+
+def test_real_run_links_are_the_steps_measurements(real_run):
+    """At every step the links drawn (the row at that step: none is left from an earlier step)
+    join antennas of truth.parquet at that step; bearings (2 Hz, time-tagged at steps) are the
+    measurements.parquet rows of that step between cluster vehicles, NLOS ones orange."""
+    chunks, truth, _, _, meas = real_run
+    steps = sorted(round(t * 1e9) for t in truth.t_s.unique())
+    ants = _rows_at(chunks["/" + bp.TRUTH_ANTENNAS])
+    for kind in ("uwb", "bearing"):
+        links = _rows_at(chunks[bp.links_path(kind)])
+        first = min(links)
+        assert [t for t in steps if t >= first] == sorted(links), kind  # a row at every step from the first
+        for t in sorted(links):
+            strips = links[t].get("LineStrips3D:strips", [])
+            ends = np.asarray(strips, dtype=float).reshape(-1, 3)
+            a = np.asarray(ants[t]["Points3D:positions"])
+            assert all(np.min(np.linalg.norm(a - p, axis=1)) == 0.0 for p in ends), (kind, t)
+    bearings = _rows_at(chunks[bp.links_path("bearing")])
+    b = meas[(meas.type == "bearing") & meas.vehicle.isin(truth.vehicle) & meas.other.isin(truth.vehicle)]
+    for t in steps:
+        rows = b[np.round(b.t_s * 1e9) == t]
+        colors = bearings.get(t, {}).get("LineStrips3D:colors", [])
+        assert len(colors) == len(rows) if t in bearings else len(rows) == 0
+        nlos_rgba = (255 << 24) | (150 << 16) | (30 << 8) | 255
+        assert sum(c == nlos_rgba for c in colors) == int((~rows.los).sum())
+
+
+def test_an_epoch_without_initialized_vehicles_clears_the_estimates(tmp_path):
+    """v2v.run's epoch logger: an epoch whose rows are all uninitialized (after an estimate was
+    drawn) is an empty estimates and ellipses row, so the viewer does not keep showing the
+    estimate of the epoch before; the error series just have no point there."""
+    import pandas as pd
+
+    from v2v.run import _epoch_logger
+
+    t = [0.0, 0.1, 0.2]
+    frame = pd.DataFrame({
+        "t_s": t, "vehicle": "veh.1", "initialized": [True, False, True],
+        "est_e_m": [1.0, np.nan, 2.0], "est_n_m": [0.0, np.nan, 0.0], "true_e_m": 0.0, "true_n_m": 0.0,
+        "cov_ee_m2": [1.0, np.nan, 1.0], "cov_en_m2": [0.0, np.nan, 0.0], "cov_nn_m2": [1.0, np.nan, 1.0],
+        "along_err_m": [0.1, np.nan, 0.2], "across_err_m": 0.0, "sigma_along_m": 1.0, "sigma_across_m": 1.0,
+        "nees_pos": 1.0, "used_pr": 8, "rejected_pr": 0, "rejected_uwb": 0, "rejected_bearing": 0,
+        "rejected_doppler": 0,
+    })
+    steps = {round(x * 1e6): TrafficStep(t_s=x, vehicles={
+        "lead": _state("lead", x, (0.0, 0.0), 0.0, lead=True), "veh.1": _state("veh.1", x, (0.0, -20.0), 0.0, lead=False)})
+        for x in t}
+    path = tmp_path / "r.rrd"
+    with RerunReplayLogger(path) as lg:
+        _epoch_logger(lg, GEO, {"replay": 0.0})("GPS", "lead", frame, lambda x: steps[round(x * 1e6)])
+    chunks = _read(path)
+    t_ns, pos = _column(chunks[bp.estimates_path("GPS")], "Points3D:positions")
+    assert [round(x / 1e8) for x in t_ns] == [0, 1, 2] and [len(p) for p in pos] == [1, 0, 1]
+    _, half = _column(chunks[bp.ellipses_path("GPS")], "Ellipsoids3D:half_sizes")
+    assert [len(h) for h in half] == [1, 0, 1]
+    # drawn at the true antenna plus the error (east 1 m, 2 m; no grid convergence at the origin)
+    np.testing.assert_allclose([pos[0][0][:2], pos[2][0][:2]], [[1.0, -20.0], [2.0, -20.0]], atol=F32_ABS_M)
+    t_err, along = _column(chunks[bp.error_path("GPS", "veh.1", "along")], "Scalars:scalars")
+    assert [round(x / 1e8) for x in t_err] == [0, 2] and along == [[0.1], [0.2]]

@@ -7,7 +7,8 @@ Entity paths (``<sol>`` = solution name, ``<veh>`` = vehicle id, both escaped wi
 ==================================  ===============  ======================================
 path                                archetype        content
 ==================================  ===============  ======================================
-``world/lanes``                     LineStrips3D     lane centre lines, z = 0 (static)
+``world/lanes``                     LineStrips3D     lane centre lines, z = 0.02 m, just
+                                                     above the surface (static)
 ``world/lanes/surface``             Mesh3D           lane surfaces: centre line buffered by
                                                      half the lane width (static)
 ``world/buildings``                 Mesh3D           extruded footprints, roofs + walls
@@ -18,8 +19,8 @@ path                                archetype        content
 ``world/vehicles/truth/antennas``   Points3D         true antenna positions (``xyz_m``)
 ``world/vehicles/background``       Boxes3D          non-cluster traffic (radio blockers)
 ``world/estimates/<sol>``           Points3D         estimated antenna positions
-``world/estimates/<sol>/ellipses``  Ellipsoids3D     horizontal uncertainty ellipses: flat
-                                                     ellipsoids, drawn with their axes
+``world/estimates/<sol>/ellipses``  Ellipsoids3D     horizontal 95 % uncertainty ellipses:
+                                                     flat ellipsoids, drawn with their axes
 ``world/links/uwb``                 LineStrips3D     UWB ranges a -> b, coloured by status
 ``world/links/bearing``             LineStrips3D     bearings a -> b, coloured by status
 ``map/lanes``                       GeoLineStrings   lane centre lines, WGS-84 (static)
@@ -32,10 +33,26 @@ path                                archetype        content
 ``errors/<sol>/<veh>/across``       Scalars          across-track error, m
 ``errors/<sol>/<veh>/across_sigma`` Scalars (2)      +1 sigma, -1 sigma, m
 ``errors/<sol>/<veh>/nees``         Scalars          normalized estimation error squared
-``errors/<sol>/<veh>/nis``          Scalars          normalized innovation squared
+``errors/<sol>/<veh>/nis``          Scalars          normalized innovation squared (NaN
+                                                     from ``v2v run``: no per-epoch NIS)
 ``errors/<sol>/<veh>/n_sats``       Scalars          satellites used
 ``errors/<sol>/<veh>/rejections``   Scalars          innovation-test rejections
 ==================================  ===============  ======================================
+
+A run with several clusters logs each cluster's estimates and ellipses on its own entity,
+``world/estimates/<sol>/<cluster>`` and ``world/estimates/<sol>/<cluster>/ellipses`` (one
+entity per solution would hold a row per cluster at each time, and the viewer shows the last
+row logged at a time: one cluster's estimates only).
+
+What ``v2v run`` logs (``v2v.run``): estimates and errors only for initialized vehicles (an
+epoch without any, after some were drawn, is an empty estimates row, which clears them);
+each estimate is drawn at its vehicle's true antenna plus its error (``est - true`` ENU,
+turned into net XY by the grid convergence), so its offset from the drawn truth is the
+``epochs.parquet`` error; ``n_sats`` is ``used_pr`` and ``rejections`` the sum of the
+``rejected_*`` counts of pr, doppler, uwb and bearing. Links: at every step the UWB ranges
+and bearings measured since the previous step between vehicles present at it (an empty row
+when there are none, so that no earlier step's links stay drawn), LOS or NLOS ("rejected" is
+never logged by ``v2v run``).
 
 Colours: line of sight green, NLOS orange, rejected red; lead vehicle orange, other
 cluster vehicles blue, background traffic grey. Each error series carries its own style
@@ -72,12 +89,14 @@ MAP_VEHICLES = "map/vehicles"
 ERROR_SERIES = ("along", "along_sigma", "across", "across_sigma", "nees", "nis", "n_sats", "rejections")
 
 
-def estimates_path(solution: str) -> str:
-    return rr.new_entity_path(["world", "estimates", solution])
+def estimates_path(solution: str, cluster: str = "") -> str:
+    """``world/estimates/<sol>``, or ``world/estimates/<sol>/<cluster>`` for one of several clusters."""
+    return rr.new_entity_path(["world", "estimates", solution, *([cluster] if cluster else [])])
 
 
-def ellipses_path(solution: str) -> str:
-    return rr.new_entity_path(["world", "estimates", solution, "ellipses"])
+def ellipses_path(solution: str, cluster: str = "") -> str:
+    """``world/estimates/<sol>/ellipses``, or ``world/estimates/<sol>/<cluster>/ellipses``."""
+    return rr.new_entity_path(["world", "estimates", solution, *([cluster] if cluster else []), "ellipses"])
 
 
 def links_path(kind: str) -> str:

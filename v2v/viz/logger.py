@@ -83,9 +83,12 @@ class ReplayLogger(ABC):
         vehicle_ids: Sequence[str],
         est_xy_m: ArrayLike,
         cov_en_m2: ArrayLike,
+        cluster: str = "",
     ) -> None:
         """Estimated positions ``(n, 2)`` net XY of one solution with their horizontal
-        covariance ``(n, 2, 2)`` (east/north, m²), drawn as uncertainty ellipses."""
+        covariance ``(n, 2, 2)`` (east/north, m²), drawn as uncertainty ellipses. ``cluster``
+        (a run with several clusters): the cluster's own entities, so that the clusters' rows
+        at the same time do not replace each other."""
 
     @abstractmethod
     def log_links(
@@ -196,9 +199,10 @@ class ReplayLogger(ABC):
         est_xy_m: ArrayLike,
         cov_en_m2: ArrayLike,
         errors: ArrayLike,
+        cluster: str = "",
     ) -> None:
         """Several epochs of one solution: at each time ``t_s[k]``, :meth:`log_errors_many`
-        and :meth:`log_estimates` of its ``counts[k]`` vehicles. ``vehicle_ids``, ``est_xy_m``
+        and :meth:`log_estimates` (of ``cluster``) of its ``counts[k]`` vehicles. ``vehicle_ids``, ``est_xy_m``
         ``(sum(counts), 2)``, ``cov_en_m2`` ``(sum(counts), 2, 2)`` and ``errors``
         ``(sum(counts), 8)`` (:meth:`log_errors`' order) hold the epochs' rows one after
         another."""
@@ -213,7 +217,9 @@ class ReplayLogger(ABC):
         for t, m in zip(np.asarray(t_s, dtype=float).reshape(-1).tolist(),
                         np.asarray(counts, dtype=int).reshape(-1).tolist(), strict=True):
             self.log_errors_many(t, solution, ids[lo : lo + m], err[lo : lo + m].tolist())
-            self.log_estimates(t, solution, ids[lo : lo + m], xy[lo : lo + m], cov[lo : lo + m])
+            # cluster only when given: a logger written before it existed still serves one cluster
+            self.log_estimates(t, solution, ids[lo : lo + m], xy[lo : lo + m], cov[lo : lo + m],
+                               **({"cluster": cluster} if cluster else {}))
             lo += m
 
     @abstractmethod
@@ -242,7 +248,7 @@ class NullLogger(ReplayLogger):
     def log_truth(self, t_s, step) -> None:
         pass
 
-    def log_estimates(self, t_s, solution, vehicle_ids, est_xy_m, cov_en_m2) -> None:
+    def log_estimates(self, t_s, solution, vehicle_ids, est_xy_m, cov_en_m2, cluster="") -> None:
         pass
 
     def log_links(self, t_s, kind, a_xyz_m, b_xyz_m, status) -> None:
@@ -279,7 +285,7 @@ class NullLogger(ReplayLogger):
     def log_errors_many(self, t_s, solution, vehicle_ids, rows) -> None:
         pass
 
-    def log_epochs(self, t_s, solution, counts, vehicle_ids, est_xy_m, cov_en_m2, errors) -> None:
+    def log_epochs(self, t_s, solution, counts, vehicle_ids, est_xy_m, cov_en_m2, errors, cluster="") -> None:
         pass
 
     def close(self) -> None:

@@ -577,8 +577,8 @@ class RerunReplayLogger(ReplayLogger):
         # error series buffers: (solution, vehicle) -> its ERROR_SERIES paths, times, value rows
         self._errors: dict[tuple[str, str], _ErrorRows] = {}
         self._buffered_rows = 0
-        # estimates not yet turned into rows: (times, vehicles per time, solution, labels, xy, cov_en)
-        self._estimates: list[tuple[list[float], list[int], str, list[str], FloatArray, FloatArray]] = []
+        # estimates not yet turned into rows: (times, vehicles per time, (solution, cluster), labels, xy, cov_en)
+        self._estimates: list[tuple[list[float], list[int], tuple[str, str], list[str], FloatArray, FloatArray]] = []
         self._estimate_times = 0  # times waiting in _estimates (each makes a points and an ellipses row)
         self._scene: dict[str, _SceneRows] = {}
         self._scene_rows = 0
@@ -791,6 +791,7 @@ class RerunReplayLogger(ReplayLogger):
         vehicle_ids: Sequence[str],
         est_xy_m: ArrayLike,
         cov_en_m2: ArrayLike,
+        cluster: str = "",
     ) -> None:
         """Checked and copied now; points and ellipses are made for all waiting calls at
         once (:meth:`_estimate_rows`) when the scene is sent."""
@@ -801,13 +802,13 @@ class RerunReplayLogger(ReplayLogger):
             raise ValueError(
                 f"log_estimates: {len(vehicle_ids)} ids, {len(xy)} positions, {len(cov)} covariances"
             )
-        self._add_estimates([float(t_s)], [len(xy)], solution, [str(v) for v in vehicle_ids], xy, cov)
+        self._add_estimates([float(t_s)], [len(xy)], solution, [str(v) for v in vehicle_ids], xy, cov, cluster)
 
     def _add_estimates(self, times: list[float], lengths: list[int], solution: str, labels: list[str],
-                       xy: FloatArray, cov: FloatArray) -> None:
+                       xy: FloatArray, cov: FloatArray, cluster: str = "") -> None:
         self._solutions.setdefault(solution)
         self._color_of(solution)
-        self._estimates.append((times, lengths, solution, labels, xy, cov))
+        self._estimates.append((times, lengths, (solution, str(cluster)), labels, xy, cov))
         self._estimate_times += len(times)
         if self._scene_rows + 2 * self._estimate_times >= self.params.flush_rows:  # a points and an ellipses row
             self._flush_scene()
@@ -819,19 +820,20 @@ class RerunReplayLogger(ReplayLogger):
             return
         pending, self._estimates = self._estimates, []
         self._estimate_times = 0
-        by_solution: dict[str, list[tuple[list[float], list[int], str, list[str], FloatArray, FloatArray]]] = {}
+        by_solution: dict[tuple[str, str], list[tuple[list[float], list[int], tuple[str, str], list[str],
+                                                      FloatArray, FloatArray]]] = {}
         for e in pending:
             by_solution.setdefault(e[2], []).append(e)
         r = self._rot_en_to_xy
         z = self.params.estimate_z_m
-        for solution, calls in by_solution.items():
+        for (solution, cluster), calls in by_solution.items():
             times = [t for c in calls for t in c[0]]
             lengths = np.array([n for c in calls for n in c[1]], dtype=int)
             xy = np.concatenate([c[4] for c in calls])
             cov_xy = r @ np.concatenate([c[5] for c in calls]) @ r.T
             rgb_u8 = np.array(self._color_of(solution), dtype=np.uint8)
             self._add_rows(
-                bp.estimates_path(solution),
+                bp.estimates_path(solution, cluster),
                 rr.Points3D,
                 times,
                 lengths.tolist(),
@@ -845,7 +847,7 @@ class RerunReplayLogger(ReplayLogger):
             half, yaw = ellipse_axes(cov_xy[ok], self._k)
             n = len(half)
             self._add_rows(
-                bp.ellipses_path(solution),
+                bp.ellipses_path(solution, cluster),
                 rr.Ellipsoids3D,
                 times,
                 n_ok.tolist(),
@@ -1006,8 +1008,9 @@ class RerunReplayLogger(ReplayLogger):
         est_xy_m: ArrayLike,
         cov_en_m2: ArrayLike,
         errors: ArrayLike,
+        cluster: str = "",
     ) -> None:
-        """Estimates and errors of many epochs of one solution (see
+        """Estimates and errors of many epochs of one solution (of ``cluster``) (see
         :meth:`v2v.viz.logger.ReplayLogger.log_epochs`): the same rows as a
         :meth:`log_errors_many` and a :meth:`log_estimates` per epoch, buffered in a few
         vectorized steps (``v2v.run`` logs each 30 s chunk of a solution so)."""
@@ -1024,7 +1027,7 @@ class RerunReplayLogger(ReplayLogger):
                              f"{lengths.sum()}) for {len(ids)} vehicle ids, {len(xy)} positions, {len(cov)} "
                              f"covariances and {len(values)} error rows of {_N_ERROR_VALUES} numbers")
         self._add_errors(np.repeat(times, lengths), solution, ids, values)
-        self._add_estimates(times.tolist(), lengths.tolist(), solution, ids, xy, cov)
+        self._add_estimates(times.tolist(), lengths.tolist(), solution, ids, xy, cov, cluster)
 
     def _add_errors(self, times: FloatArray, solution: str, vehicle_ids: list[str], values: FloatArray) -> None:
         """Rows ``values[j]`` of ``vehicle_ids[j]`` at ``times[j]``, sorted into each vehicle's
