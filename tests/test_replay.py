@@ -1081,7 +1081,7 @@ def test_an_epoch_without_initialized_vehicles_clears_the_estimates(tmp_path):
         "cov_ee_m2": [1.0, np.nan, 1.0], "cov_en_m2": [0.0, np.nan, 0.0], "cov_nn_m2": [1.0, np.nan, 1.0],
         "along_err_m": [0.1, np.nan, 0.2], "across_err_m": 0.0, "sigma_along_m": 1.0, "sigma_across_m": 1.0,
         "nees_pos": 1.0, "used_pr": 8, "rejected_pr": 0, "rejected_uwb": 0, "rejected_bearing": 0,
-        "rejected_doppler": 0,
+        "rejected_doppler": 0, "rejected_phase": [2, 0, 3],  # (a carrier-phase solution's column)
     })
     steps = {round(x * 1e6): TrafficStep(t_s=x, vehicles={
         "lead": _state("lead", x, (0.0, 0.0), 0.0, lead=True), "veh.1": _state("veh.1", x, (0.0, -20.0), 0.0, lead=False)})
@@ -1098,3 +1098,5 @@ def test_an_epoch_without_initialized_vehicles_clears_the_estimates(tmp_path):
     np.testing.assert_allclose([pos[0][0][:2], pos[2][0][:2]], [[1.0, -20.0], [2.0, -20.0]], atol=F32_ABS_M)
     t_err, along = _column(chunks[bp.error_path("GPS", "veh.1", "along")], "Scalars:scalars")
     assert [round(x / 1e8) for x in t_err] == [0, 2] and along == [[0.1], [0.2]]
+    _, rej = _column(chunks[bp.error_path("GPS", "veh.1", "rejections")], "Scalars:scalars")
+    assert rej == [[2.0], [3.0]]  # every rejected_* count, the carrier phase's too

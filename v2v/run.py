@@ -1023,7 +1023,7 @@ def _epoch_logger(logger, georef: GeoReference, timing: dict[str, float]):
     cache: dict[str, tuple[float, float]] = {}  # cos, sin of the grid convergence at the first lead position
     shown: set[tuple[str, str]] = set()  # (solution, cluster) with estimates logged
     error_columns = ("along_err_m", "across_err_m", "sigma_along_m", "sigma_across_m", "nees_pos")
-    rejected = ("rejected_pr", "rejected_uwb", "rejected_bearing", "rejected_doppler")
+    rejected = ("rejected_pr", "rejected_uwb", "rejected_bearing", "rejected_doppler", "rejected_phase")  # (phase: if any)
 
     def log_epochs(solution: str, lead: str, frame: pd.DataFrame, truth_at, cluster: str = "") -> None:
         t0 = time.perf_counter()
@@ -1075,7 +1075,7 @@ def _epoch_logger(logger, georef: GeoReference, timing: dict[str, float]):
         cov = np.stack([cee, cen, cen, cnn], axis=1).reshape(-1, 2, 2)
         errors = np.column_stack([*(rows[k].to_numpy(dtype=float) for k in error_columns), np.full(len(t), np.nan),
                                   rows["used_pr"].to_numpy(dtype=float),
-                                  sum(rows[k].to_numpy(dtype=float) for k in rejected)])
+                                  sum(rows[k].to_numpy(dtype=float) for k in rejected if k in rows)])
         logger.log_epochs(t_epochs, solution, counts, vehicles, xy, cov, errors, cluster)
 
     return log_epochs

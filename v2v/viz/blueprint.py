@@ -49,7 +49,7 @@ epoch without any, after some were drawn, is an empty estimates row, which clear
 each estimate is drawn at its vehicle's true antenna plus its error (``est - true`` ENU,
 turned into net XY by the grid convergence), so its offset from the drawn truth is the
 ``epochs.parquet`` error; ``n_sats`` is ``used_pr`` and ``rejections`` the sum of the
-``rejected_*`` counts of pr, doppler, uwb and bearing. Links: at every step the UWB ranges
+``rejected_*`` counts of pr, doppler, uwb, bearing and, in a carrier-phase solution, phase. Links: at every step the UWB ranges
 and bearings measured since the previous step between vehicles present at it (an empty row
 when there are none, so that no earlier step's links stay drawn), LOS or NLOS ("rejected" is
 never logged by ``v2v run``).
