@@ -32,7 +32,7 @@ from pydantic import (
     model_validator,
 )
 
-from v2v.config.sections import ExchangeSection, SensorsSection, SolutionSection, paper_solutions
+from v2v.config.sections import ExchangeSection, SensorsSection, SolutionSection, a_path, paper_solutions
 from v2v.errors import UserError, not_a_file
 from v2v.faults import FaultSection
 
@@ -43,13 +43,6 @@ BACKGROUND_PREFIX = "bg"  # background vehicles are bg.0, bg.1, ...: no cluster 
 
 def _control_chars(v: str) -> bool:
     return any(ord(ch) < 32 or ord(ch) == 127 for ch in v)
-
-
-def _a_path(v: str) -> str:
-    """A file path field: a NUL byte cannot be in a path (Python's file calls raise ValueError)."""
-    if "\x00" in v:
-        raise ValueError("contains a NUL character (\\u0000), which no file path can -- fix: give the file's path")
-    return v
 
 
 class _Model(BaseModel):
@@ -74,14 +67,14 @@ class NetworkConfig(_Model):
     @field_validator("net_file")
     @classmethod
     def _net_file_is_a_path(cls, v: str) -> str:
-        return _a_path(v)
+        return a_path(v)
 
     @field_validator("polygon_files")
     @classmethod
     def _polygon_files_are_paths(cls, v: list[str]) -> list[str]:
         for i, f in enumerate(v):
             try:
-                _a_path(f)
+                a_path(f)
             except ValueError as exc:
                 raise ValueError(f"@{i}: {exc}") from None
         return v

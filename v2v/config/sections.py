@@ -20,6 +20,14 @@ from pydantic import (
 )
 
 
+def a_path(v: str, fix: str = "give the file's path") -> str:
+    """A file path field's value, checked: a NUL byte cannot be in a path (Python's file calls
+    raise ValueError on it)."""
+    if "\x00" in v:
+        raise ValueError(f"contains a NUL character (\\u0000), which no file path can -- fix: {fix}")
+    return v
+
+
 class _Model(BaseModel):
     # Field types are strict (StrictBool, StrictInt, StrictFloat), as v2v.config.scenario's: a
     # wrong TOML type is an error, not coerced (true is no 1.0, "3" no 3, 0 no false); a float
@@ -54,10 +62,7 @@ class GnssSection(_Model):
     @field_validator("ephemeris")
     @classmethod
     def _ephemeris_is_a_path(cls, v: str) -> str:
-        if "\x00" in v:  # (Python's file calls raise ValueError on it)
-            raise ValueError('contains a NUL character (\\u0000), which no file path can -- fix: give the RINEX'
-                             ' file\'s path, or "nominal"')
-        return v
+        return a_path(v, fix='give the RINEX file\'s path, or "nominal"')
 
 
 # the built-in UWB radio profiles (v2v.sensors.uwb.PROFILES; names matched case-insensitively)
