@@ -62,7 +62,13 @@ def test_compiled_epoch_errors_equal_the_numpy_definitions():
     random clusters: the same formulas summed in the same order, so they may differ only where
     BLAS fuses a multiply-add: a few ulps of the largest term (ECEF differences ~1e3 m ->
     ~1e-13 m; covariances ~1 m^2 -> ~1e-16). Tolerance 1e-12 relative to each quantity's scale."""
-    from v2v.frames import ecef_to_enu, ecef_to_enu_rotation, ecef_to_geodetic, enu_to_ecef_vector, geodetic_to_ecef
+    from v2v.frames import (
+        ecef_to_enu,
+        ecef_to_enu_rotation,
+        ecef_to_geodetic,
+        enu_to_ecef_vector,
+        geodetic_to_ecef,
+    )
     from v2v.metrics.errors import EPOCH_COLUMNS, epoch_errors, lead_frame_errors, lead_frame_sigmas, nees
 
     rng = np.random.default_rng(3)
