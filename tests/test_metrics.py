@@ -58,11 +58,17 @@ def test_nees_of_consistent_gaussian_is_chi2():
 def test_compiled_epoch_errors_equal_the_numpy_definitions():
     """The pipeline's per-epoch numbers come from one compiled call
     (v2v.metrics.errors.epoch_errors). Check it against the definitions it replaces
-    (frames.ecef_to_enu, lead_frame_errors, lead_frame_sigmas, nees) on random clusters:
-    the same formulas summed in the same order, so they may differ only where BLAS fuses a
-    multiply-add: a few ulps of the largest term (ECEF differences ~1e3 m -> ~1e-13 m;
-    covariances ~1 m^2 -> ~1e-16). Tolerance 1e-12 relative to each quantity's scale."""
-    from v2v.frames import ecef_to_enu, ecef_to_enu_rotation, geodetic_to_ecef
+    (frames.ecef_to_enu, enu_to_ecef_vector, lead_frame_errors, lead_frame_sigmas, nees) on
+    random clusters: the same formulas summed in the same order, so they may differ only where
+    BLAS fuses a multiply-add: a few ulps of the largest term (ECEF differences ~1e3 m ->
+    ~1e-13 m; covariances ~1 m^2 -> ~1e-16). Tolerance 1e-12 relative to each quantity's scale."""
+    from v2v.frames import (
+        ecef_to_enu,
+        ecef_to_enu_rotation,
+        ecef_to_geodetic,
+        enu_to_ecef_vector,
+        geodetic_to_ecef,
+    )
     from v2v.metrics.errors import EPOCH_COLUMNS, epoch_errors, lead_frame_errors, lead_frame_sigmas, nees
 
     rng = np.random.default_rng(3)
@@ -77,20 +83,95 @@ def test_compiled_epoch_errors_equal_the_numpy_definitions():
         P = a @ a.T + np.eye(nx)
         ipos, ivel = 8 * np.arange(n), 8 * np.arange(n) + 3
         vel, lead_vel = rng.normal(size=(n, 3)), rng.normal(size=3)
+        lat_k, lon_k, _ = ecef_to_geodetic(ecef)
         ready = rng.random(n) < 0.7
-        out = epoch_errors(x, P, ipos, ivel, ecef, lead, ecef_to_enu_rotation(lat, lon), vel, lead_vel,
+        rot = ecef_to_enu_rotation(lat, lon)
+        out = epoch_errors(x, P, ipos, ivel, ecef, lead, rot, vel, np.stack([lat_k, lon_k], axis=1), lead_vel,
                            float(np.sin(az)), float(np.cos(az)), ready)
         assert out.shape == (n, len(EPOCH_COLUMNS))
         for k in range(n):
             true = ecef_to_enu(ecef[k], lat, lon, lead)
+            true_vel = rot @ (enu_to_ecef_vector(vel[k], lat_k[k], lon_k[k]) - enu_to_ecef_vector(lead_vel, lat, lon))
             est = x[ipos[k]:ipos[k] + 3]
             cov = P[ipos[k]:ipos[k] + 3, ipos[k]:ipos[k] + 3]
-            ref = np.concatenate([true, est, vel[k] - lead_vel, x[ivel[k]:ivel[k] + 3],
+            ref = np.concatenate([true, est, true_vel, x[ivel[k]:ivel[k] + 3],
                                   lead_frame_errors(est, true, az), lead_frame_sigmas(cov, az),
                                   [cov[0, 0], cov[0, 1], cov[1, 1], nees(est - true, cov)]])
             if not ready[k]:  # not initialized: the truth only (true position and velocity)
                 ref[[*range(3, 6), *range(9, 22)]] = np.nan
             np.testing.assert_allclose(out[k], ref, rtol=1e-12, atol=1e-12 * 100.0, equal_nan=True)
+
+
+def _true_rel_vel(lead_lat_lon_deg, lead_vel_enu, lat_lon_deg, vel_enu):
+    """``true_ve/vn/vu_mps`` of vehicles at ``lat_lon_deg`` (n, 2), each velocity ENU at its own
+    position, from :func:`v2v.metrics.errors.epoch_errors` (truth only: no vehicle ready)."""
+    from v2v.frames import ecef_to_enu_rotation, geodetic_to_ecef
+    from v2v.metrics.errors import EPOCH_COLUMNS, epoch_errors
+
+    lat0, lon0 = np.radians(lead_lat_lon_deg)
+    ll = np.radians(np.asarray(lat_lon_deg, dtype=float).reshape(-1, 2))
+    n = ll.shape[0]
+    ecef = np.asarray(geodetic_to_ecef(ll[:, 0], ll[:, 1], 1100.0)).reshape(n, 3)
+    out = epoch_errors(np.zeros(6), np.eye(6), np.zeros(n, dtype=np.int64), np.full(n, 3, dtype=np.int64), ecef,
+                       np.asarray(geodetic_to_ecef(lat0, lon0, 1100.0)), ecef_to_enu_rotation(lat0, lon0),
+                       np.asarray(vel_enu, dtype=float).reshape(n, 3), ll, np.asarray(lead_vel_enu, dtype=float),
+                       0.0, 1.0, np.zeros(n, dtype=bool))
+    i = EPOCH_COLUMNS.index("true_ve_mps")
+    assert EPOCH_COLUMNS[i:i + 3] == ("true_ve_mps", "true_vn_mps", "true_vu_mps")
+    return out[:, i:i + 3]
+
+
+def test_true_relative_velocity_of_a_common_ecef_velocity_is_zero():
+    """Two vehicles 0.1 deg of longitude apart (7 km at 51 deg N) moving with one ECEF velocity
+    have no relative velocity, in any frame. Their ENU velocities (pymap3d, each at its own
+    position) differ by the frames' turn, 0.1 deg * (sin 51 deg about up, cos 51 deg tilt):
+    ~4 cm/s at 25 m/s, what differencing them directly (the former formula) reported."""
+    import pymap3d
+
+    lead_ll, veh_ll = (51.0775, -114.1295), (51.0775, -114.0295)
+    v_ecef = np.array(pymap3d.enu2ecefv(20.0, 15.0, 0.3, *lead_ll))  # 25 m/s north-east at the lead
+    lead_enu = np.array(pymap3d.ecef2enuv(*v_ecef, *lead_ll))
+    veh_enu = np.array(pymap3d.ecef2enuv(*v_ecef, *veh_ll))
+    rel = _true_rel_vel(lead_ll, lead_enu, [veh_ll], [veh_enu])[0]
+    np.testing.assert_allclose(rel, 0.0, atol=1e-12)  # rounding of 25 m/s through two rotations: ~1e-14
+    old = veh_enu - lead_enu  # each in its own frame: not zero
+    assert np.linalg.norm(old) > 0.02
+
+
+def test_true_relative_velocity_along_a_meridian_by_hand():
+    """Lead and follower on one meridian, the follower delta = 3.75e-5 rad (~240 m) of geodetic
+    latitude north, both driving due north at 25 m/s level in their own ENU frames. The
+    follower's north is the lead's north turned by delta towards the lead's down:
+    ``N(phi + delta) = N cos delta - U sin delta``, so in the lead's frame its velocity is
+    ``(0, 25 cos delta, -25 sin delta)`` and the relative one ``(0, 25 (cos delta - 1),
+    -25 sin delta)`` = (0, -1.76e-8, -9.375e-4) m/s (it descends relative to the lead's level,
+    following the Earth's curvature). The former formula gave zero."""
+    delta = 3.75e-5
+    lat0 = 51.0775
+    rel = _true_rel_vel((lat0, -114.1295), [0.0, 25.0, 0.0], [(lat0 + np.degrees(delta), -114.1295)],
+                        [[0.0, 25.0, 0.0]])[0]
+    np.testing.assert_allclose(rel, [0.0, 25.0 * (np.cos(delta) - 1.0), -25.0 * np.sin(delta)], rtol=0, atol=1e-13)
+    assert abs(rel[2]) > 9e-4
+
+
+def test_true_relative_velocity_against_pymap3d():
+    """General case, pymap3d as the independent reference: each velocity to ECEF at its own
+    position (``enu2ecefv``), the difference back to ENU at the lead (``ecef2enuv``). Three
+    followers 0.002-0.05 deg away from the lead with velocities that climb and turn; the
+    former formula (ENU differences) is off by 0.8-18 mm/s here, the tolerance 1e-12 m/s is
+    rounding of ~30 m/s velocities."""
+    import pymap3d
+
+    lead_ll, lead_v = (-33.87, 151.21), np.array([-12.0, 21.0, 0.4])
+    ll = np.array([[-33.868, 151.21], [-33.87, 151.26], [-33.92, 151.17]])
+    vel = np.array([[-11.0, 22.5, -0.2], [3.0, -27.0, 1.1], [18.0, 9.0, 0.0]])
+    rel = _true_rel_vel(lead_ll, lead_v, ll, vel)
+    lead_ecef = np.array(pymap3d.enu2ecefv(*lead_v, *lead_ll))
+    for k in range(3):
+        d = np.array(pymap3d.enu2ecefv(*vel[k], *ll[k])) - lead_ecef
+        ref = np.array(pymap3d.ecef2enuv(*d, *lead_ll))
+        np.testing.assert_allclose(rel[k], ref, rtol=0, atol=1e-12)
+        assert np.abs((vel[k] - lead_v) - ref).max() > 1e-4  # the former formula fails this
 
 
 def test_update_kind_statistics_by_hand():

@@ -186,12 +186,31 @@ def test_epochs_table_is_consistent_with_truth(short_run):
                       np.radians(lead.lon_deg), lead[["ecef_x_m", "ecef_y_m", "ecef_z_m"]].to_numpy(float))
     row = ep[(ep.t_s == t) & (ep.vehicle == "c1.1")].iloc[0]
     np.testing.assert_allclose(row[["true_e_m", "true_n_m", "true_u_m"]].to_numpy(float), rel, atol=1e-6)
+    _assert_true_relative_velocity(ep, truth.set_index(["t_s", "vehicle"]), "c1.0")
     err = enu_to_lead_frame(row[["est_e_m", "est_n_m", "est_u_m"]].to_numpy(float) - rel, lead.azimuth_rad)
     np.testing.assert_allclose(row[["along_err_m", "across_err_m", "up_err_m"]].to_numpy(float), err, atol=1e-9)
     ok = ep[ep.initialized]
     assert len(ok) > 0.9 * len(ep)
     assert np.isfinite(ok[["est_e_m", "est_n_m", "sigma_along_m", "sigma_across_m"]].to_numpy()).all()
     assert (ok[["sigma_along_m", "sigma_across_m", "sigma_up_m"]] > 0).all().all()
+
+
+def _assert_true_relative_velocity(ep, truth, lead: str) -> None:
+    """``true_ve/vn/vu_mps`` of every row of ``ep`` against truth.parquet with pymap3d: each
+    vehicle's ``vel_e/n/u_mps`` (ENU at its own position) to ECEF, minus the lead's, to ENU at
+    the lead. The frames of vehicles tens of metres apart turn ~5 urad apart, ~1e-4 m/s at
+    these speeds, so the former ENU difference fails the 1e-9 m/s tolerance (which is the
+    rounding of lat/lon through degrees and the parquet)."""
+    import pymap3d
+
+    vel, ll = ["vel_e_mps", "vel_n_mps", "vel_u_mps"], ["lat_deg", "lon_deg"]
+    veh = truth.loc[list(zip(ep.t_s, ep.vehicle, strict=True))]
+    lead = truth.loc[list(zip(ep.t_s, [lead] * len(ep), strict=True))]
+    d = (np.array(pymap3d.enu2ecefv(*veh[vel].to_numpy(float).T, *veh[ll].to_numpy(float).T))
+         - np.array(pymap3d.enu2ecefv(*lead[vel].to_numpy(float).T, *lead[ll].to_numpy(float).T)))
+    ref = np.array(pymap3d.ecef2enuv(*d, *lead[ll].to_numpy(float).T)).T
+    np.testing.assert_allclose(ep[["true_ve_mps", "true_vn_mps", "true_vu_mps"]].to_numpy(float), ref, rtol=0, atol=1e-9)
+    assert np.abs(veh[vel].to_numpy(float) - lead[vel].to_numpy(float) - ref).max() > 1e-6
 
 
 def test_replay_has_the_run(short_run):
@@ -368,6 +387,7 @@ def test_vehicle_leaving_and_rejoining_the_cluster(tmp_path):
                           lead[ecef].to_numpy(float))
         np.testing.assert_allclose(row[["true_e_m", "true_n_m", "true_u_m"]].to_numpy(float), rel, atol=1e-6)
         assert row["true_lane_index"] == veh.lane_index and row["lane_width_m"] == veh.lane_width_m
+    _assert_true_relative_velocity(gone.reset_index(), truth, "c1.0")  # (the rows of vehicles out of the filter)
     assert gone[["est_e_m", "along_err_m", "sigma_along_m", "cov_ee_m2", "nees_pos"]].isna().all().all()
     assert (gone.filter(regex="^(used|rejected)_").to_numpy() == 0).all() and not gone["integrity_available"].any()
     assert ep.dtypes["integrity_available"] == np.bool_ and ep.dtypes["initialized"] == np.bool_

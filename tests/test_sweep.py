@@ -261,6 +261,86 @@ def test_report_says_how_many_seeds_a_value_has_and_draws_no_zero_interval(tmp_p
     assert along["ax"].get_xlabel() == "n_vehicles" and along["ax"].get_ylabel() == "along-track error std (m)"
 
 
+def test_report_figure_labels_grid_values_whose_labels_collide_distinctly(tmp_path, monkeypatch):
+    """runs.parquet of a study over two solutions lists of the same name (written whole, as
+    JSON) and scenario names alike in their first 40 characters. Before, both lists' bars were
+    drawn at the same place under one legend entry, and the names were drawn whole (70
+    characters, over each other). Now: one series per list, numbered, bars side by side; tick
+    labels cut, numbered where cut ones would be the same, wrapped; report.md lists the whole
+    values beside the labels."""
+    import matplotlib
+
+    matplotlib.use("Agg")
+    import matplotlib.figure
+
+    from v2v.sweep import _LABEL_CHARS, _TICK_CHARS, _row, _write_runs, _write_sweep_json
+
+    common = "a scenario name long enough to be cut in the figure, "
+    names = [common + "variant one", common + "variant two", "short"]
+    study = load_study(_write(tmp_path / "s.toml", "seeds = [1, 2]\n[grid]\nsolutions = ["
+                              '[{name = "GPS+UWB", sensors = ["gnss", "uwb"]}], '
+                              '[{name = "GPS+UWB", sensors = ["gnss", "uwb"], uwb_error_states = true}]]\n'
+                              f"name = {json.dumps(names)}\n"))
+    sol_values = list(dict.fromkeys(r.labels["solutions"] for r in study.runs))
+    assert len(sol_values) == 2 and all(v.startswith("[{") for v in sol_values)  # whole values: the names collide
+    rng = np.random.default_rng(5)
+    rows = {r.run_id: _row(r, "ok", "", 1.0, {f"GPS+UWB.{v}.{m}": x for v in ("c1.1", "c1.2")
+                                              for m, x in (("epochs", 50.0), ("along.std", rng.uniform(0.1, 0.3)),
+                                                           ("across.std", rng.uniform(0.1, 0.3)))})
+            for r in study.runs}
+    out = tmp_path / "sweep"
+    out.mkdir()
+    _write_runs(out, study, rows)
+    _write_sweep_json(out, study)
+    figures = []
+    orig = matplotlib.figure.Figure.savefig
+
+    def savefig(self, *args, **kwargs):
+        figures.append(self)
+        return orig(self, *args, **kwargs)
+
+    monkeypatch.setattr(matplotlib.figure.Figure, "savefig", savefig)
+    assert _cli(["sweep", "report", str(out)]) == 0
+    (fig,) = figures
+    assert len(fig.axes) == 2  # along, across
+    for ax in fig.axes:
+        ticks = [t.get_text() for t in ax.get_xticklabels()]
+        assert len(ticks) == 3 and len(set(ticks)) == 3, ticks
+        assert all(len(line) <= _TICK_CHARS for t in ticks for line in t.split("\n")), ticks
+        # cut to _LABEL_CHARS with "…", both to the same text, so numbered; wrapped at spaces here
+        cut = [names[0][:_LABEL_CHARS - 1] + "… [1]", names[1][:_LABEL_CHARS - 1] + "… [2]", "short"]
+        assert [" ".join(t.split("\n")) for t in ticks] == cut
+        legend = [t.get_text() for t in ax.get_legend().get_texts()]
+        assert legend == ["GPS+UWB [1]", "GPS+UWB [2]"]
+        xs = [round(b.get_x(), 9) for b in ax.patches]
+        assert len(xs) == 6 and len(set(xs)) == 6  # 3 names x 2 lists, no bar drawn over another
+    md = (out / "report.md").read_text()
+    labels = md[md.index("## Labels in report.png"):]
+    assert f"| solutions | 1 | GPS+UWB [1] | {sol_values[0]} |" in labels
+    assert f"| solutions | 2 | GPS+UWB [2] | {sol_values[1]} |" in labels
+    for i, name in enumerate(names):
+        assert f"| name | {i + 1} | {cut[i]} | {name} |" in labels
+
+
+@pytest.mark.parametrize(("texts", "expected"), [
+    (["a", "b"], ["a", "b"]),
+    (["a", "a", "b"], ["a [1]", "a [2]", "b"]),
+    (["A", "A", "A [2]"], ["A [1]", "A [2]", "A [2] [3]"]),  # a numbered label is another value's own
+])
+def test_figure_labels_are_numbered_only_where_shared(texts, expected):
+    from v2v.sweep import _distinct
+
+    assert _distinct(texts) == expected
+
+
+def test_tick_labels_wrap_after_commas_and_spaces():
+    from v2v.sweep import _wrap
+
+    assert _wrap('[["c1.0","c1.1"],["c1.0","c1.2"]] [2]', 18) == '[["c1.0","c1.1"],\n["c1.0","c1.2"]]\n[2]'
+    assert _wrap("hospital_loop, 0.1", 18) == "hospital_loop, 0.1"
+    assert _wrap("x" * 40, 18) == "x" * 18 + "\n" + "x" * 18 + "\n" + "x" * 4  # no place to break: cut
+
+
 def test_flatten_summary_names_columns_solution_vehicle_metric():
     s = {"seed": 3, "wall_s": 1.0, "simulated_s": 5.0, "gnss": {"epochs": 51, "nlos_fraction": None},
          "events": [{"t_s": 1.0}], "table": "x",

@@ -1175,8 +1175,8 @@ def _epoch_record(name: str, t_s: float, ekf: ClusterEkf, step: TrafficStep, lea
             x, P, np.array([lay.position_starts[v] for v in est_v]), np.array([lay.velocity_starts[v] for v in est_v]),
             np.array([st.ecef_m for st in sts], dtype=float), np.asarray(lead_st.ecef_m, dtype=float),
             ecef_to_enu_rotation(lead_st.lat_rad, lead_st.lon_rad), np.array([st.vel_enu_mps for st in sts], dtype=float),
-            np.asarray(lead_st.vel_enu_mps, dtype=float), float(np.sin(a)), float(np.cos(a)),
-            np.array([ekf.is_initialized(v) for v in est_v]))
+            np.array([(st.lat_rad, st.lon_rad) for st in sts], dtype=float), np.asarray(lead_st.vel_enu_mps, dtype=float),
+            float(np.sin(a)), float(np.cos(a)), np.array([ekf.is_initialized(v) for v in est_v]))
     count_keys = _ROW_COUNT_KEYS_PHASE if ekf.config.phase is not None else _ROW_COUNT_KEYS
     integrity = getattr(ekf, "integrity_available", {})
     lead_az = (float(_wrap(ekf.azimuth_rad(lead) - lead_st.azimuth_rad)) if ekf.is_azimuth_initialized(lead)
@@ -1202,7 +1202,8 @@ def _epoch_record(name: str, t_s: float, ekf: ClusterEkf, step: TrafficStep, lea
             np.zeros(6), np.eye(6), np.zeros(k, dtype=np.int64), np.full(k, 3, dtype=np.int64),
             np.array([st.ecef_m for st in sts], dtype=float), np.asarray(lead_st.ecef_m, dtype=float),
             ecef_to_enu_rotation(lead_st.lat_rad, lead_st.lon_rad), np.array([st.vel_enu_mps for st in sts], dtype=float),
-            np.asarray(lead_st.vel_enu_mps, dtype=float), float(np.sin(a)), float(np.cos(a)), np.zeros(k, dtype=bool))
+            np.array([(st.lat_rad, st.lon_rad) for st in sts], dtype=float), np.asarray(lead_st.vel_enu_mps, dtype=float),
+            float(np.sin(a)), float(np.cos(a)), np.zeros(k, dtype=bool))
         num.update(zip(gone, truth_only.tolist(), strict=True))
     rows = []
     for v in vehicles:

@@ -1053,9 +1053,10 @@ def write_report(sweep_dir: str | Path, out_dir: str | Path | None = None) -> Re
     from v2v.io.atomic import atomic_write, atomic_write_text
 
     csv_path, md_path, png_path = out / "report.csv", out / "report.md", out / "report.png"
+    labels = _figure_labels(df, agg, grid_cols, solutions)
     atomic_write(csv_path, lambda p: agg.to_csv(p, index=False))
-    atomic_write_text(md_path, _report_markdown(src, df, agg, grid_cols, solutions))
-    atomic_write(png_path, lambda p: _report_figure(agg, grid_cols, solutions, p))
+    atomic_write_text(md_path, _report_markdown(src, df, agg, grid_cols, solutions, labels))
+    atomic_write(png_path, lambda p: _report_figure(agg, labels, p))
     return ReportResult(markdown=md_path, csv=csv_path, figure=png_path, table=agg)
 
 
@@ -1073,7 +1074,7 @@ def _isnan(v: Any) -> bool:
     return isinstance(v, float) and math.isnan(v)
 
 
-def _report_markdown(src: Path, df, agg, grid_cols: list[str], solutions: list[str]) -> str:
+def _report_markdown(src: Path, df, agg, grid_cols: list[str], solutions: list[str], labels: _FigureLabels) -> str:
     n_ok = int((df["status"] == "ok").sum())
     n_failed = int((df["status"] != "ok").sum())
     lines = [f"# Sweep report: {src}", "",
@@ -1124,52 +1125,187 @@ def _report_markdown(src: Path, df, agg, grid_cols: list[str], solutions: list[s
         if len(noted) > 50:
             lines.append(f"... and {len(noted) - 50} more (see runs.parquet)")
     lines += ["", "All metrics, per grid combination: report.csv. Figure: report.png.", ""]
+    shown = [c for c in labels.columns if labels.explain[c]]
+    if shown:
+        lines += ["## Labels in report.png", "",
+                  f"A grid value whose label in report.png is not its whole value: cut to {_LABEL_CHARS} characters "
+                  "(…), a solutions list named by its solutions, and [#] after a label (or a solution's name in "
+                  "the legend) where two would otherwise be the same, # the value's place in its grid column.", ""]
+        rows = [[c, i + 1, _md_cell(lab), _md_cell(v)] for c in shown
+                for i, (v, lab) in enumerate(zip(labels.columns[c], labels.texts[c], strict=True))]
+        lines += _md_table(["grid column", "#", "label in report.png", "value"], rows)
+        lines.append("")
     return "\n".join(lines)
+
+
+def _md_cell(value: Any) -> str:
+    """A value as one markdown table cell (its | and line breaks escaped)."""
+    return str(value).replace("\\", "\\\\").replace("|", "\\|").replace("\n", "\\n")
 
 
 _FALLBACK_METRICS = ("gnss.satellites_tracked_mean", "gnss.nlos_fraction")
 
 
-def _report_figure(agg, grid_cols: list[str], solutions: list[str], path: Path) -> None:
+_LABEL_CHARS = 40  # a grid value's label in report.png at most (cut with "…"; report.md has the whole value)
+_TICK_CHARS = 18  # characters per line of an x tick label (wrapped)
+
+
+@dataclass(frozen=True, kw_only=True)
+class _FigureLabels:
+    """What report.png draws, with labels that are distinct and short.
+
+    ``columns``: each grid column's values in the order of runs.parquet, ``texts`` their labels
+    (:func:`_value_texts`), ``explain`` whether report.md lists them (a label that is not the
+    whole value, or a solutions value the legend numbers). ``xkeys``: the x positions, one per
+    combination of the grid columns but ``solutions`` (as indices into ``columns``), ``xticks``
+    their tick labels (wrapped). ``series``: one bar series per (index of the ``solutions`` grid
+    value or None, solution name), ``legend`` their names, numbered ``[#]`` where one name belongs
+    to several grid values (else their bars would be drawn over each other as one series).
+    """
+
+    solutions: bool  # the bars are solutions (else the GNSS fallback metrics, one series)
+    panels: list[tuple[str, str]]  # (panel, y label)
+    columns: dict[str, list[Any]]
+    texts: dict[str, list[str]]
+    explain: dict[str, bool]
+    x_cols: list[str]
+    xkeys: list[tuple[int, ...]]
+    xticks: list[str]
+    series: list[tuple[int | None, str]]
+    legend: list[str]
+
+    def index(self, col: str, value: Any) -> int:
+        """The place of ``value`` in grid column ``col``."""
+        return _place(self.columns[col], value)
+
+    def metric(self, panel: str, name: str) -> str:
+        return f"{name}.vehicles_mean.{panel}.std" if self.solutions else panel
+
+
+def _short_text(value: Any) -> str:
+    """A grid value as report.png labels it: a solutions list that runs.parquet holds whole (as
+    JSON: two lists had the same names) by its solutions' names, white space as single spaces,
+    at most :data:`_LABEL_CHARS` characters."""
+    text = str(value)
+    if isinstance(value, str) and value[:1] == "[":
+        try:
+            parsed = json.loads(value)
+        except ValueError:
+            parsed = None
+        if isinstance(parsed, list) and parsed and all(isinstance(v, dict) and "name" in v for v in parsed):
+            text = str(_label(parsed))
+    text = " ".join(text.split()) or '""'  # (an empty or blank string: a visible label)
+    return text if len(text) <= _LABEL_CHARS else text[:_LABEL_CHARS - 1] + "…"
+
+
+def _distinct(texts: list[str]) -> list[str]:
+    """``texts`` with every text that several share numbered by its place, ``"text [#]"``; if a
+    numbered text is then another one's own, every text numbered (distinct: the last numbers
+    differ)."""
+    counts: dict[str, int] = {}
+    for t in texts:
+        counts[t] = counts.get(t, 0) + 1
+    out = [f"{t} [{i + 1}]" if counts[t] > 1 else t for i, t in enumerate(texts)]
+    if len(set(out)) < len(out):
+        out = [f"{t} [{i + 1}]" for i, t in enumerate(texts)]
+    return out
+
+
+def _value_texts(values: list[Any]) -> list[str]:
+    """Distinct short labels of one grid column's (distinct) values."""
+    return _distinct([_short_text(v) for v in values])
+
+
+def _wrap(text: str, width: int) -> str:
+    """``text`` in lines of at most ``width`` characters, broken after a comma or a space where
+    it can be (compact JSON has no spaces), inside a longer piece where it cannot."""
+    lines = [""]
+    for piece in re.findall(r"[^,\s]*[,\s]*", text):
+        if lines[-1] and len(lines[-1].rstrip()) + len(piece.rstrip()) > width:
+            lines.append("")
+        lines[-1] += piece
+        while len(lines[-1].rstrip()) > width:
+            lines[-1:] = [lines[-1][:width], lines[-1][width:]]
+    return "\n".join(line.strip() for line in lines if line.strip())
+
+
+def _place(values: list[Any], value: Any) -> int:
+    """The index of ``value`` in ``values`` (NaN matches NaN)."""
+    return next(i for i, v in enumerate(values) if v == value or (_isnan(v) and _isnan(value)))
+
+
+def _figure_labels(df, agg, grid_cols: list[str], solutions: list[str]) -> _FigureLabels:
+    import pandas as pd
+
+    columns = {c: list(pd.unique(df[c])) for c in grid_cols}
+    texts = {c: _value_texts(v) for c, v in columns.items()}
+    explain = {c: any(t != str(v) for v, t in zip(columns[c], texts[c], strict=True)) for c in grid_cols}
+    x_cols = [c for c in grid_cols if c != "solutions"]
+    if solutions:
+        panels = [("along", "along-track error std (m)"), ("across", "across-track error std (m)")]
+    else:
+        panels = [(m, m) for m in _FALLBACK_METRICS]
+    records = agg.to_dict("records")
+    xkeys: list[tuple[int, ...]] = []
+    for r in records:
+        k = tuple(_place(columns[c], r[c]) for c in x_cols)
+        if k not in xkeys:
+            xkeys.append(k)
+    ticks = _distinct([", ".join(texts[c][i] for c, i in zip(x_cols, k, strict=True)) or "all runs" for k in xkeys])
+    series: list[tuple[int | None, str]]
+    if not solutions:
+        series, legend = [(None, "")], [""]
+    elif "solutions" not in grid_cols:
+        series, legend = [(None, name) for name in solutions], list(solutions)
+    else:  # per solutions value, the names it has a panel metric of
+        have = {(_place(columns["solutions"], r["solutions"]), r["metric"]) for r in records}
+        pairs = [(i, name) for name in solutions for i in range(len(columns["solutions"]))
+                 if any((i, f"{name}.vehicles_mean.{p}.std") in have for p, _ in panels)]
+        shared = {n for n in solutions if sum(1 for _, m in pairs if m == n) > 1}
+        series = list(pairs)
+        legend = _distinct([f"{n} [{i + 1}]" if n in shared else n for i, n in pairs])
+        explain["solutions"] = explain["solutions"] or bool(shared)
+    return _FigureLabels(solutions=bool(solutions), panels=panels, columns=columns, texts=texts, explain=explain,
+                         x_cols=x_cols, xkeys=xkeys,
+                         xticks=[_wrap(t, _TICK_CHARS) for t in ticks],
+                         series=series, legend=legend)
+
+
+def _report_figure(agg, lab: _FigureLabels, path: Path) -> None:
     import matplotlib
 
     matplotlib.use("Agg")
     import matplotlib.pyplot as plt
     import numpy as np
 
-    x_cols = [c for c in grid_cols if c != "solutions"]
-    if solutions:
-        panels = [("along", "along-track error std (m)"), ("across", "across-track error std (m)")]
-        series = solutions
-    else:
-        panels = [(m, m) for m in _FALLBACK_METRICS]
-        series = [""]
-    fig, axes = plt.subplots(1, len(panels), figsize=(6.0 * len(panels), 4.2), squeeze=False)
-    xkeys: list[str] = []
-    for r in agg.to_dict("records"):
-        k = ", ".join(str(r[c]) for c in x_cols) or "all runs"
-        if k not in xkeys:
-            xkeys.append(k)
-    width = 0.8 / max(len(series), 1)
-    for ax, (panel, ylabel) in zip(axes[0], panels, strict=True):
-        for j, sol in enumerate(series):
-            metric = f"{sol}.vehicles_mean.{panel}.std" if solutions else panel
-            sub = agg[agg["metric"] == metric]
+    n_x = len(lab.xkeys)
+    # wide enough for the wrapped tick labels side by side (~1.6 in at 8 pt), up to 26 in a panel
+    panel_w = min(max(6.0, 1.0 + 1.6 * n_x), 26.0)
+    fig, axes = plt.subplots(1, len(lab.panels), figsize=(panel_w * len(lab.panels), 4.6), squeeze=False)
+    width = 0.8 / max(len(lab.series), 1)
+    for ax, (panel, ylabel) in zip(axes[0], lab.panels, strict=True):
+        for j, ((sv, name), legend) in enumerate(zip(lab.series, lab.legend, strict=True)):
+            sub = agg[agg["metric"] == lab.metric(panel, name)]
+            if sv is not None:
+                sub = sub[[lab.index("solutions", v) == sv for v in sub["solutions"]]]
             if sub.empty:
                 continue
             xs, ys, es = [], [], []
             for r in sub.to_dict("records"):
-                k = ", ".join(str(r[c]) for c in x_cols) or "all runs"
-                xs.append(xkeys.index(k) + (j - (len(series) - 1) / 2) * width)
+                k = tuple(lab.index(c, r[c]) for c in lab.x_cols)
+                xs.append(lab.xkeys.index(k) + (j - (len(lab.series) - 1) / 2) * width)
                 ys.append(r["mean"])
                 es.append(r["ci95_half"])  # NaN (one seed): no error bar, rather than one of zero width
-            ax.bar(xs, ys, width=width * 0.95, yerr=es, capsize=4, label=sol or None)
-        ax.set_xticks(np.arange(len(xkeys)), xkeys, rotation=20, ha="right")
+            ax.bar(xs, ys, width=width * 0.95, yerr=es, capsize=4, label=legend or None)
+        if n_x <= 15:
+            ax.set_xticks(np.arange(n_x), lab.xticks, fontsize=8)
+        else:  # (the panel's width is capped: upright labels)
+            ax.set_xticks(np.arange(n_x), lab.xticks, fontsize=8, rotation=90)
         ax.set_ylabel(ylabel)
-        ax.set_xlabel(", ".join(x_cols))
+        ax.set_xlabel(", ".join(lab.x_cols))
         ax.grid(axis="y", alpha=0.3)
-        if solutions:
-            ax.set_title(f"{panel}: mean over vehicles, 95 % CI across seeds (none: one seed)")
+        if lab.solutions:
+            ax.set_title(f"{panel}: mean over vehicles\n95 % CI across seeds (none: one seed)", fontsize=10)
             if ax.get_legend_handles_labels()[0]:  # (a panel of a metric no run has: no bars)
                 ax.legend(fontsize=8)
     fig.tight_layout()
