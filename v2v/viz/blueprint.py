@@ -33,8 +33,9 @@ path                                archetype        content
 ``errors/<sol>/<veh>/across``       Scalars          across-track error, m
 ``errors/<sol>/<veh>/across_sigma`` Scalars (2)      +1 sigma, -1 sigma, m
 ``errors/<sol>/<veh>/nees``         Scalars          normalized estimation error squared
-``errors/<sol>/<veh>/nis``          Scalars          normalized innovation squared (NaN
-                                                     from ``v2v run``: no per-epoch NIS)
+``errors/<sol>/<veh>/nis``          Scalars          mean NIS of the epoch's accepted
+                                                     measurement updates naming the
+                                                     vehicle (NaN: none); ~1 if consistent
 ``errors/<sol>/<veh>/n_sats``       Scalars          satellites used
 ``errors/<sol>/<veh>/rejections``   Scalars          innovation-test rejections
 ==================================  ===============  ======================================
@@ -49,7 +50,12 @@ epoch without any, after some were drawn, is an empty estimates row, which clear
 each estimate is drawn at its vehicle's true antenna plus its error (``est - true`` ENU,
 turned into net XY by the grid convergence), so its offset from the drawn truth is the
 ``epochs.parquet`` error; ``n_sats`` is ``used_pr`` and ``rejections`` the sum of the
-``rejected_*`` counts of pr, doppler, uwb, bearing and, in a carrier-phase solution, phase. Links: at every step the UWB ranges
+``rejected_*`` counts of pr, doppler, uwb, bearing and, in a carrier-phase solution, phase;
+``nis`` the mean NIS of the accepted updates those ``used_*`` counts count (the output
+interval's SD pseudoranges, Dopplers, phases, UWB ranges and bearings naming the vehicle, a
+pair's for both of its vehicles; rejected ones are in ``rejections``), from the run's update log
+(:func:`v2v.metrics.errors.epoch_nis_sums`): chi-square(1) NIS average ~1 in a consistent
+filter, NaN where the vehicle had no accepted update. Links: at every step the UWB ranges
 and bearings measured since the previous step between vehicles present at it (an empty row
 when there are none, so that no earlier step's links stay drawn), LOS or NLOS ("rejected" is
 never logged by ``v2v run``).
