@@ -561,7 +561,7 @@ def test_each_error_series_is_styled_on_its_entity_and_shown_in_one_view(run):
         for vid in VEHICLES[1:]:
             for series in bp.ERROR_SERIES:
                 p = bp.error_path(sol, vid, series)
-                assert shown[p] == (0 if series == "nis" else 1), (p, shown[p])
+                assert shown[p] == 1, (p, shown[p])
                 (static,) = [c.to_record_batch() for c in chunks[p] if c.is_static]
                 style = {n.split(":")[1]: static.column(n).to_pylist()[0] for n in static.schema.names if n.startswith("SeriesLines:")}
                 if series in ("along", "across"):

@@ -66,8 +66,9 @@ cluster vehicles blue, background traffic grey. Each error series carries its ow
 blueprint needs no per-view overrides.
 
 The default blueprint: the 3-D world large on the left; on the right, top to bottom,
-along-track error with ±σ, across-track error with ±σ, NEES, satellites/rejections,
-then a row with the sky plots (one tab per vehicle) and a map of the geodetic truth.
+along-track error with ±σ, across-track error with ±σ, NEES (a second tab: NIS),
+satellites/rejections, then a row with the sky plots (one tab per vehicle) and a map of the
+geodetic truth.
 """
 
 from __future__ import annotations
@@ -137,7 +138,7 @@ def series_style(series: str, solution: str, vehicle_id: str, rgb: tuple[int, in
     """How the default blueprint draws the error series ``series`` of (``solution``,
     ``vehicle_id``), ``rgb`` being the solution's colour: the logger logs it static on the
     series' entity. Each series is in one view of the blueprint (along and across: the
-    vehicle's error tab; NEES; satellites used / rejections; NIS in none), so the entity's
+    vehicle's error tab; NEES; NIS; satellites used / rejections), so the entity's
     own style is what that view shows, and the blueprint carries no per-view overrides
     (they were 189 of its 342 chunks at N = 10; sending, flushing and closing the blueprint
     took 55.9 ms with them, 21.4 ms without).
@@ -180,8 +181,9 @@ def default_blueprint(
 
     Left: the 3-D world, the camera following the cluster. Right, top to bottom: along-track
     and across-track error with +-1 sigma (one tab per vehicle, one colour per solution, the
-    whole run on the time axis), position NEES, satellites used / rejections, and the sky
-    plots (one tab per vehicle) beside the map. Side panels start collapsed.
+    whole run on the time axis), position NEES with the per-epoch NIS in a second tab,
+    satellites used / rejections, and the sky plots (one tab per vehicle) beside the map.
+    Side panels start collapsed.
 
     Parameters
     ----------
@@ -213,7 +215,8 @@ def _default_blueprint(
         right.append(rrb.Tabs(*[_error_view("Across-track error ±1σ [m]", sols, v, "across") for v in vehicle_ids]))
     else:
         right.append(_series_view("Along-track error ±1σ [m]", pairs, ("along", "along_sigma")))
-    right.append(_series_view("NEES (position, 3 dof)", pairs, ("nees",)))
+    right.append(rrb.Tabs(_series_view("NEES (position, 3 dof)", pairs, ("nees",)),
+                          _series_view("NIS (epoch mean of scalar updates, 1 dof)", pairs, ("nis",))))
     right.append(_series_view("Satellites used / rejections", pairs, ("n_sats", "rejections")))
     bottom: list[rrb.Container | rrb.View] = []
     if sky_vehicle_ids:
