@@ -265,3 +265,44 @@ def test_printed_table_lists_vehicles_in_departure_order():
     ids = [f"c1.{k}" for k in range(1, 13)]
     table = paper_table({"GPS": {"vehicles": {v: e for v in sorted(ids)}}})
     assert [ln.split()[1] for ln in table.splitlines()[1:]] == ids
+
+
+def test_epoch_nis_sums_by_hand():
+    """Per-epoch NIS, worked by hand: three output epochs (0.1, 0.2, 0.3 s), vehicles a and b.
+
+    ====  ========  ==============  ===========  ========  ====  =============================
+    #     t_s       kind            vehicles     accepted  NIS   counts for
+    ====  ========  ==============  ===========  ========  ====  =============================
+    0     0.05      sd_pseudorange  a            yes       0.5   epoch 0, a
+    1     0.1       uwb             a, b         yes       2.0   epoch 0, a and b (a pair)
+    2     0.1+5e-10 sd_doppler      b            yes       4.0   epoch 0, b (within 1e-9)
+    3     0.15      bearing         b, lead      yes       1.0   epoch 1, b (the lead: no row)
+    4     0.15      sd_pseudorange  a            no        30.0  nothing: rejected
+    5     0.2       height_aiding   a            yes       0.25  nothing: a pseudo-measurement
+    6     0.2       uwb_constraint  a, b         yes       9.0   nothing: a constraint
+    7     0.2       sd_phase        a            yes       3.0   epoch 1, a
+    8     0.35      sd_pseudorange  a            yes       1.0   nothing: after the last epoch
+    9     0.2       sd_doppler      b            yes       NaN   nothing: not a number
+    ====  ========  ==============  ===========  ========  ====  =============================
+
+    Means: epoch 0 a (0.5 + 2) / 2 = 1.25, b (2 + 4) / 2 = 3; epoch 1 a 3, b 1; epoch 2 none (NaN).
+    """
+    from v2v.metrics.errors import epoch_nis_sums
+
+    kinds = ["bearing", "height_aiding", "sd_doppler", "sd_phase", "sd_pseudorange", "uwb", "uwb_constraint"]
+    sets = [("a",), ("a", "b"), ("b",), ("b", "lead")]
+    t = [0.05, 0.1, 0.1 + 5e-10, 0.15, 0.15, 0.2, 0.2, 0.2, 0.35, 0.2]
+    kind = [4, 5, 2, 0, 4, 1, 6, 3, 4, 2]
+    veh = [0, 1, 2, 3, 0, 0, 1, 0, 0, 2]
+    acc = [True, True, True, True, False, True, True, True, True, True]
+    nis = [0.5, 2.0, 4.0, 1.0, 30.0, 0.25, 9.0, 3.0, 1.0, np.nan]
+    sums, counts = epoch_nis_sums([0.1, 0.2, 0.3], ["a", "b"], t, nis, acc, kind, kinds, veh, sets)
+    np.testing.assert_array_equal(counts, [[2, 2], [1, 1], [0, 0]])
+    np.testing.assert_allclose(sums, [[2.5, 6.0], [3.0, 1.0], [0.0, 0.0]], rtol=1e-15, atol=0)
+    # the vehicles reported are the caller's: b alone gets b's column
+    sums_b, counts_b = epoch_nis_sums([0.1, 0.2, 0.3], ["b"], t, nis, acc, kind, kinds, veh, sets)
+    np.testing.assert_array_equal(counts_b, counts[:, 1:])
+    np.testing.assert_array_equal(sums_b, sums[:, 1:])
+    # no updates: zero sums and counts of the right shape
+    s0, n0 = epoch_nis_sums([0.1, 0.2], ["a"], [], [], [], [], [], [], [])
+    assert s0.shape == n0.shape == (2, 1) and not s0.any() and not n0.any()

@@ -561,7 +561,7 @@ def test_each_error_series_is_styled_on_its_entity_and_shown_in_one_view(run):
         for vid in VEHICLES[1:]:
             for series in bp.ERROR_SERIES:
                 p = bp.error_path(sol, vid, series)
-                assert shown[p] == (0 if series == "nis" else 1), (p, shown[p])
+                assert shown[p] == 1, (p, shown[p])
                 (static,) = [c.to_record_batch() for c in chunks[p] if c.is_static]
                 style = {n.split(":")[1]: static.column(n).to_pylist()[0] for n in static.schema.names if n.startswith("SeriesLines:")}
                 if series in ("along", "across"):
@@ -1040,6 +1040,50 @@ def test_real_run_estimates_ellipses_and_errors_are_the_epochs(real_run):
             assert [x[0] for x in series["nees"][1]] == ev.nees_pos.tolist()
 
 
+def _nis_series(chunks, epochs):
+    """{(solution, vehicle): (times_ns, values)} of the replay's nis series, for the
+    initialized (solution, vehicle) pairs of ``epochs``."""
+    out = {}
+    for (sol, v), _ in epochs[epochs.initialized].groupby(["solution", "vehicle"]):
+        t, vals = _column(chunks[bp.error_path(sol, v, "nis")], "Scalars:scalars")
+        out[sol, v] = (t, np.array([x[0] for x in vals], dtype=float))
+    return out
+
+
+def test_real_run_nis_is_a_mean_of_accepted_nis_where_the_epoch_used_measurements(real_run, tmp_path):
+    """The nis series (a mean of accepted NIS: v2v.metrics.errors.epoch_nis_sums) has a point
+    at every initialized epoch: NaN exactly where the row's used_pr + used_doppler + used_uwb
+    + used_bearing is 0 (those counts count the same updates, a pair's for both vehicles),
+    else inside (0, k^2] (each accepted NIS passed the gate |nu| <= k sqrt(S), k^2 = 10.83).
+    The same run in 1 s chunks (updates and epochs handed to the replay chunk by chunk)
+    logs the same values."""
+    from v2v.config.scenario import load_scenario
+    from v2v.estimation.filter import FilterConfig
+    from v2v.run import run_scenario
+
+    chunks, _, epochs, _, _ = real_run
+    gate = FilterConfig().gate_k ** 2
+    series = _nis_series(chunks, epochs)
+    assert len(series) >= 6
+    n_points = 0
+    for (sol, v), (t_ns, nis) in series.items():
+        e = epochs[epochs.initialized & (epochs.solution == sol) & (epochs.vehicle == v)].sort_values("t_s")
+        np.testing.assert_allclose(t_ns / 1e9, e.t_s, atol=1e-9, rtol=0)
+        used = sum(e[k].to_numpy() for k in ("used_pr", "used_doppler", "used_uwb", "used_bearing"))
+        np.testing.assert_array_equal(np.isnan(nis), used == 0, err_msg=f"{sol} {v}")
+        finite = nis[used > 0]
+        assert ((finite > 0.0) & (finite <= gate)).all(), (sol, v, finite.min(), finite.max())
+        n_points += len(finite)
+    assert n_points > 100
+    (tmp_path / "two.toml").write_text(TWO_CLUSTERS_TOML)
+    run_scenario(load_scenario(tmp_path / "two.toml"), tmp_path / "run", quiet=True, replay=True, chunk_s=1.0)
+    chunked = _nis_series(_read(tmp_path / "run" / "replay.rrd"), epochs)
+    assert chunked.keys() == series.keys()
+    for key, (t_ns, nis) in series.items():
+        np.testing.assert_array_equal(chunked[key][0], t_ns)
+        np.testing.assert_array_equal(chunked[key][1], nis)
+
+
 def test_real_run_links_are_the_steps_measurements(real_run):
     """At every step the links drawn (the row at that step: none is left from an earlier step)
     join antennas of truth.parquet at that step; bearings (2 Hz, time-tagged at steps) are the
@@ -1069,9 +1113,14 @@ def test_real_run_links_are_the_steps_measurements(real_run):
 def test_an_epoch_without_initialized_vehicles_clears_the_estimates(tmp_path):
     """v2v.run's epoch logger: an epoch whose rows are all uninitialized (after an estimate was
     drawn) is an empty estimates and ellipses row, so the viewer does not keep showing the
-    estimate of the epoch before; the error series just have no point there."""
+    estimate of the epoch before; the error series just have no point there. The nis series
+    is the mean NIS of the vehicle's accepted updates of each epoch (update log by hand:
+    0.0 s a pseudorange NIS 0.5 and a UWB range lead-veh.1 NIS 1.5, mean 1; 0.1 s one
+    update, no point: uninitialized; 0.2 s a rejected pseudorange only, NaN)."""
     import pandas as pd
 
+    from v2v.estimation.filter import UpdateInfo
+    from v2v.pipeline import UpdateLog
     from v2v.run import _epoch_logger
 
     t = [0.0, 0.1, 0.2]
@@ -1086,9 +1135,17 @@ def test_an_epoch_without_initialized_vehicles_clears_the_estimates(tmp_path):
     steps = {round(x * 1e6): TrafficStep(t_s=x, vehicles={
         "lead": _state("lead", x, (0.0, 0.0), 0.0, lead=True), "veh.1": _state("veh.1", x, (0.0, -20.0), 0.0, lead=False)})
         for x in t}
+    log = UpdateLog()
+    log.keep_recent = True
+    log.add(0.0, [UpdateInfo("sd_pseudorange", ("veh.1",), 0.5, 0.5, 0.5, True, 3),
+                  UpdateInfo("uwb", ("lead", "veh.1"), 1.5, 1.5, 1.5, True)], [False, False])
+    log.add(0.1, [UpdateInfo("sd_pseudorange", ("veh.1",), 1.0, 1.0, 1.0, True, 3)], [False])
+    log.add(0.2, [UpdateInfo("sd_pseudorange", ("veh.1",), 6.0, 1.0, 36.0, False, 3)], [False])
+    log.flush()
     path = tmp_path / "r.rrd"
     with RerunReplayLogger(path) as lg:
-        _epoch_logger(lg, GEO, {"replay": 0.0})("GPS", "lead", frame, lambda x: steps[round(x * 1e6)])
+        _epoch_logger(lg, GEO, {"replay": 0.0})("GPS", "lead", frame, lambda x: steps[round(x * 1e6)], "",
+                                                log.take_recent(), t)
     chunks = _read(path)
     t_ns, pos = _column(chunks[bp.estimates_path("GPS")], "Points3D:positions")
     assert [round(x / 1e8) for x in t_ns] == [0, 1, 2] and [len(p) for p in pos] == [1, 0, 1]
@@ -1100,3 +1157,5 @@ def test_an_epoch_without_initialized_vehicles_clears_the_estimates(tmp_path):
     assert [round(x / 1e8) for x in t_err] == [0, 2] and along == [[0.1], [0.2]]
     _, rej = _column(chunks[bp.error_path("GPS", "veh.1", "rejections")], "Scalars:scalars")
     assert rej == [[2.0], [3.0]]  # every rejected_* count, the carrier phase's too
+    t_nis, nis = _column(chunks[bp.error_path("GPS", "veh.1", "nis")], "Scalars:scalars")
+    assert [round(x / 1e8) for x in t_nis] == [0, 2] and nis[0] == [1.0] and np.isnan(nis[1][0])

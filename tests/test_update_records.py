@@ -447,3 +447,43 @@ def test_epoch_blocks_make_the_frame_the_dict_rows_make():
     pd.testing.assert_frame_equal(mixed, pd.DataFrame([row(0.3, 0, [0.04, 0.05]), row(0.3, 1, [0.04, 0.05]), left]),
                                   check_exact=True)
     assert np.isnan(mixed["used_pr"].iloc[2]) and mixed["used_pr"].dtype == np.float64
+
+
+def test_recent_chunks_of_the_update_log_give_each_rows_mean_nis():
+    """The replay's per-epoch NIS from the log's recent chunks (two flushes, so two code
+    tables), by hand. Output epochs 0.1, 0.2, 0.3 s:
+
+    * 0.1: a pseudorange batch v1 NIS 1, v2 NIS 2; a UWB range v1-v2 NIS 0.5; a rejected
+      pseudorange of v1 NIS 64 (left out) -> v1 (1 + 0.5) / 2 = 0.75, v2 (2 + 0.5) / 2 = 1.25
+    * 0.2: a bearing lead -> v1 NIS 3 -> v1 3, v2 NaN (no update)
+    * 0.3 (second chunk): a UWB bound pull v1-v2 (a constraint, left out) and a Doppler of v2
+      NIS 0.25 -> v1 NaN, v2 0.25
+    """
+    from v2v.pipeline import epoch_nis_of_rows
+
+    log = UpdateLog()
+    log.keep_recent = True
+    log.add(0.1, Updates([UpdateBatch("sd_pseudorange", [("v1",), ("v2",)], np.array([1.0, 2.0]), np.array([1.0, 2.0]),
+                                      [3, 5]),
+                          [UpdateInfo("uwb", ("v1", "v2"), 1.0, 2.0, 0.5, True),
+                           UpdateInfo("sd_pseudorange", ("v1",), 8.0, 1.0, 64.0, False, 7)]]), [False] * 4)
+    log.add(0.2, [UpdateInfo("bearing", ("lead", "v1"), 3.0, 3.0, 3.0, True)], [False])
+    log.flush()
+    log.add(0.3, [UpdateInfo("uwb_constraint", ("v1", "v2"), 7.0, 7.0, 7.0, True),
+                  UpdateInfo("sd_doppler", ("v2",), 0.5, 1.0, 0.25, True, 5)], [False, False])
+    log.flush()
+    recent = log.take_recent()
+    assert len(recent) == 2 and log.take_recent() == []
+    times = [0.1, 0.2, 0.3]
+    t_rows, v_rows = np.repeat(times, 2), ["v1", "v2"] * 3
+    got = epoch_nis_of_rows(recent, times, t_rows, v_rows)
+    np.testing.assert_allclose(got, [0.75, 1.25, 3.0, np.nan, np.nan, 0.25], rtol=1e-15, atol=0)
+    # rows of some epochs only, in any order: each its own epoch's value
+    np.testing.assert_allclose(epoch_nis_of_rows(recent, times, [0.3, 0.1], ["v2", "v1"]), [0.25, 0.75], rtol=1e-15)
+    with pytest.raises(ValueError, match="not one of the output epochs"):
+        epoch_nis_of_rows(recent, times, [0.15], ["v1"])
+    # the spilled log is the same with or without the recent chunks kept
+    plain = UpdateLog()
+    plain.add(0.2, [UpdateInfo("bearing", ("lead", "v1"), 3.0, 3.0, 3.0, True)], [False])
+    plain.flush()
+    assert plain.take_recent() == [] and plain.columns()["nis"] == [3.0]

@@ -19,6 +19,7 @@ from operator import itemgetter
 from typing import TYPE_CHECKING, Any
 
 import numpy as np
+from numpy.typing import ArrayLike
 
 from v2v.config.scenario import Scenario
 from v2v.config.sections import SolutionSection
@@ -40,7 +41,7 @@ from v2v.estimation.phase import PhaseConfig, wrong_fix
 from v2v.estimation.process import ProcessNoiseConfig
 from v2v.exchange import Message, V2VExchange
 from v2v.frames import ecef_to_enu_rotation
-from v2v.metrics.errors import EPOCH_COLUMNS, epoch_errors
+from v2v.metrics.errors import EPOCH_COLUMNS, epoch_errors, epoch_nis_sums
 from v2v.sensors.measurements import Bearings, GnssEpoch, UwbRanges
 from v2v.traffic.snapshot import TrafficStep
 
@@ -441,12 +442,18 @@ UPDATE_COLUMNS = ("t_s", "kind", "vehicles", "prn", "nis", "accepted", "faulty")
 class UpdateLog:
     """Per-update diagnostics of one solution, kept compact: columns of each chunk are spilled
     to a temporary file (numpy arrays, pickled), so memory does not grow with the run. Read
-    them back with :meth:`columns` (or :attr:`SolutionRecord.updates`)."""
+    them back with :meth:`columns` (or :attr:`SolutionRecord.updates`).
+
+    With ``keep_recent`` set (a run with the replay on), each spilled chunk's columns are also
+    kept in memory until :meth:`take_recent` takes them: the replay's per-epoch NIS
+    (:func:`epoch_nis_of_rows`) reads them without reading the file back."""
 
     def __init__(self) -> None:
         self._pending: list[tuple[float | np.ndarray, Sequence[UpdateInfo], Sequence[bool]]] = []  # per event or run
         self._file: Any = None
         self.n = 0
+        self.keep_recent = False
+        self._recent: list[dict[str, Any]] = []
 
     def add(self, t_s: float, infos: Sequence[UpdateInfo], faulty: Sequence[bool]) -> None:
         self._pending.append((t_s, infos, faulty))
@@ -565,8 +572,17 @@ class UpdateLog:
         if self._file is None:
             self._file = tempfile.TemporaryFile(prefix="v2v_updates_")
         pickle.dump(cols, self._file, protocol=pickle.HIGHEST_PROTOCOL)
+        if self.keep_recent:  # (plus the vehicle sets as tuples, not joined with commas)
+            self._recent.append({**cols, "vehicle_sets": list(veh_index)})
         self.n += n
         self._pending = []
+
+    def take_recent(self) -> list[dict[str, Any]]:
+        """The columns of the chunks spilled since the last call (``keep_recent`` set; else
+        none), each as :meth:`flush` stores it plus ``vehicle_sets`` (the tuples that
+        ``vehicle_code`` indexes), and forget them."""
+        recent, self._recent = self._recent, []
+        return recent
 
     def kind_statistics(self) -> dict[str, Any]:
         """Per measurement kind (sorted), :func:`v2v.metrics.summary.update_kind_statistics` of
@@ -627,6 +643,35 @@ class UpdateLog:
                     out[k].extend(cols[k].tolist() if isinstance(cols[k], np.ndarray) else cols[k])
         self._file.seek(0, 2)
         return out
+
+
+def epoch_nis_of_rows(chunks: Sequence[dict[str, Any]], output_times: ArrayLike, row_t_s: ArrayLike,
+                      row_vehicles: Sequence[str]) -> np.ndarray:
+    """Per epoch row (time ``row_t_s[j]``, vehicle ``row_vehicles[j]``) the mean NIS of its
+    vehicle's accepted measurement updates of that output interval
+    (:func:`v2v.metrics.errors.epoch_nis_sums`: the definition), NaN where there is none.
+
+    ``chunks``: update-log columns (:meth:`UpdateLog.take_recent`) holding every update of
+    ``output_times``, the filter's output epochs of the span (each row's time one of them).
+    """
+    times = np.asarray(output_times, dtype=float).reshape(-1)
+    t_rows = np.asarray(row_t_s, dtype=float).reshape(-1)
+    ids = list(dict.fromkeys(row_vehicles))
+    sums = np.zeros((len(times), len(ids)))
+    counts = np.zeros((len(times), len(ids)), dtype=np.int64)
+    for c in chunks:
+        s, n = epoch_nis_sums(times, ids, c["t_s"], c["nis"], c["accepted"], c["kind_code"], c["kind_names"],
+                              c["vehicle_code"], c["vehicle_sets"])
+        sums += s
+        counts += n
+    ep = np.searchsorted(times, t_rows - 1e-9, side="left")  # the row's own epoch
+    if len(t_rows) and (ep.max() >= len(times) or np.abs(times[ep] - t_rows).max() > 1e-9):
+        raise ValueError("epoch_nis_of_rows: a row's time is not one of the output epochs")
+    code = {v: i for i, v in enumerate(ids)}
+    veh = np.fromiter(map(code.__getitem__, row_vehicles), dtype=np.intp, count=len(t_rows))
+    n_row = counts[ep, veh]
+    with np.errstate(invalid="ignore", divide="ignore"):
+        return np.where(n_row > 0, sums[ep, veh] / n_row, np.nan)
 
 
 @dataclass(slots=True, eq=False)

@@ -26,7 +26,7 @@ import math
 import shutil
 import sys
 import time
-from collections.abc import Iterator
+from collections.abc import Iterator, Sequence
 from dataclasses import dataclass
 from pathlib import Path
 from typing import TYPE_CHECKING, Any
@@ -461,6 +461,7 @@ def _run_scenario(scenario: Scenario, out_dir: Path, *, quiet: bool, replay: boo
                 for si, sol in enumerate(scenario.solutions):
                     ekf = build_filter(sol, lead, others, bearing_vehicles, uwb_pairs, antenna_heights)
                     runners.append(SolutionRunner(sol, ekf, lead, others))
+                    runners[-1].rec.log.keep_recent = replay  # the replay's per-epoch NIS (log_epochs)
                     keys.append(sol.name if len(scenario.clusters) == 1 else f"{cluster.name}/{sol.name}")
                     parts.append(parts_dir / f"epochs_{ci}_{si}.pkl")
                 clusters.append(_ClusterRun(name=cluster.name, lead=lead, members=members,
@@ -546,10 +547,11 @@ def _run_scenario(scenario: Scenario, out_dir: Path, *, quiet: bool, replay: boo
                                                     runner.vehicles, runner=runner)
                         consumed = runner.consumed
                         frame = rec.take_frame()
+                        updates = rec.log.take_recent()  # (the replay's: none without it)
                         if frame is not None:
                             if log_epochs is not None:
                                 log_epochs(runner.sol.name, cl.lead, frame, truth_at,
-                                           cl.name if len(clusters) > 1 else "")
+                                           cl.name if len(clusters) > 1 else "", updates, times)
                             with open(part, "ab") as f:
                                 pickle.dump(frame, f, protocol=pickle.HIGHEST_PROTOCOL)
                     del cl.events[:consumed]
@@ -1019,20 +1021,26 @@ def _epoch_logger(logger, georef: GeoReference, timing: dict[str, float]):
     """Callback logging a chunk of one solution's epoch rows (the frame of ``take_frame``) to the
     replay: each epoch's estimates of the initialized vehicles (net XY, around the lead's true
     antenna at that epoch, ``truth_at``) and their errors, in one :meth:`log_epochs` call; its
-    time is added to ``timing["replay"]``."""
+    time is added to ``timing["replay"]``. The ``nis`` series is each row's per-epoch NIS
+    (:func:`v2v.pipeline.epoch_nis_of_rows`) from the chunk's update-log columns ``updates``
+    (:meth:`v2v.pipeline.UpdateLog.take_recent`) and its output epochs ``output_times``."""
+    from v2v.pipeline import epoch_nis_of_rows
+
     cache: dict[str, tuple[float, float]] = {}  # cos, sin of the grid convergence at the first lead position
     shown: set[tuple[str, str]] = set()  # (solution, cluster) with estimates logged
     error_columns = ("along_err_m", "across_err_m", "sigma_along_m", "sigma_across_m", "nees_pos")
     rejected = ("rejected_pr", "rejected_uwb", "rejected_bearing", "rejected_doppler", "rejected_phase")  # (phase: if any)
 
-    def log_epochs(solution: str, lead: str, frame: pd.DataFrame, truth_at, cluster: str = "") -> None:
+    def log_epochs(solution: str, lead: str, frame: pd.DataFrame, truth_at, cluster: str,
+                   updates: Sequence[dict[str, Any]], output_times: Sequence[float]) -> None:
         t0 = time.perf_counter()
         try:
-            log_frame(solution, lead, frame, truth_at, cluster)
+            log_frame(solution, lead, frame, truth_at, cluster, updates, output_times)
         finally:
             timing["replay"] += time.perf_counter() - t0
 
-    def log_frame(solution: str, lead: str, frame: pd.DataFrame, truth_at, cluster: str) -> None:
+    def log_frame(solution: str, lead: str, frame: pd.DataFrame, truth_at, cluster: str,
+                  updates: Sequence[dict[str, Any]], output_times: Sequence[float]) -> None:
         if "cos_sin" not in cache and len(frame):  # the first epoch logged, initialized vehicles or not
             x0, y0 = truth_at(float(frame["t_s"].iat[0])).vehicles[lead].xyz_m[:2]
             g = georef.grid_convergence_rad(float(x0), float(y0))
@@ -1073,7 +1081,8 @@ def _epoch_logger(logger, georef: GeoReference, timing: dict[str, float]):
         xy = np.column_stack([base[:, 0] + de * c - dn * s, base[:, 1] + de * s + dn * c])
         cee, cen, cnn = (rows[k].to_numpy(dtype=float) for k in ("cov_ee_m2", "cov_en_m2", "cov_nn_m2"))
         cov = np.stack([cee, cen, cen, cnn], axis=1).reshape(-1, 2, 2)
-        errors = np.column_stack([*(rows[k].to_numpy(dtype=float) for k in error_columns), np.full(len(t), np.nan),
+        nis = epoch_nis_of_rows(updates, output_times, t, vehicles) if len(t) else np.zeros(0)
+        errors = np.column_stack([*(rows[k].to_numpy(dtype=float) for k in error_columns), nis,
                                   rows["used_pr"].to_numpy(dtype=float),
                                   sum(rows[k].to_numpy(dtype=float) for k in rejected if k in rows)])
         logger.log_epochs(t_epochs, solution, counts, vehicles, xy, cov, errors, cluster)

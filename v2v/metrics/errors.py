@@ -11,6 +11,7 @@ The statistics are those of Petovello et al. tables 3-8 (mean, std) plus RMS, th
 from __future__ import annotations
 
 import math
+from collections.abc import Sequence
 from typing import Any
 
 import numpy as np
@@ -18,6 +19,14 @@ from numba import njit
 from numpy.typing import ArrayLike, NDArray
 from scipy import special
 
+from v2v.estimation.filter import (
+    KIND_BEARING,
+    KIND_SD_DOPPLER,
+    KIND_SD_PHASE,
+    KIND_SD_PR,
+    KIND_SD_PR_PAIR,
+    KIND_UWB,
+)
 from v2v.frames import enu_to_lead_frame
 
 F64 = NDArray[np.float64]
@@ -86,6 +95,96 @@ def consistency_summary(values: ArrayLike, dof: int, confidence: float = 0.95) -
         return {"n": 0, "mean": float("nan"), "frac_in_band": float("nan"), "dof": dof}
     lo, hi = chi2_band(dof, 1, confidence)
     return {"n": int(v.size), "mean": float(v.mean()), "frac_in_band": float(np.mean((v >= lo) & (v <= hi))), "dof": dof, "band": [lo, hi]}
+
+
+#: The update kinds averaged by :func:`epoch_nis_sums`: the measurements an epoch row counts in
+#: its ``used_*`` / ``rejected_*`` columns (pr, doppler, uwb, bearing, phase). Left out are the
+#: pseudo-measurements, which no row counts: height aiding (its sigma is the assumed flatness
+#: of the road, not a sensor's noise), the UWB bias/scale bound pulls and the ambiguity holds
+#: (constraints, applied without a test).
+EPOCH_NIS_KINDS = frozenset({KIND_SD_PR, KIND_SD_PR_PAIR, KIND_SD_DOPPLER, KIND_UWB, KIND_BEARING, KIND_SD_PHASE})
+
+
+def epoch_nis_sums(
+    epoch_t_s: ArrayLike,
+    vehicle_ids: Sequence[str],
+    t_s: ArrayLike,
+    nis: ArrayLike,
+    accepted: ArrayLike,
+    kind_code: ArrayLike,
+    kind_names: Sequence[str],
+    set_code: ArrayLike,
+    vehicle_sets: Sequence[Sequence[str]],
+) -> tuple[F64, NDArray[np.int64]]:
+    """Sum and number of the accepted measurement NIS of each output epoch and vehicle.
+
+    The per-epoch NIS of vehicle ``v`` at output epoch ``k`` is ``sums[k, v] / counts[k, v]``:
+    the mean NIS ``nu^2 / S`` of the scalar updates that
+
+    * the filter processed in the epoch's output interval, i.e. with a time tag in
+      ``(epoch_t_s[k-1] + 1e-9, epoch_t_s[k] + 1e-9]`` (the first epoch: up to its time;
+      updates after the last epoch are left out). ``epoch_t_s`` must be the filter's output
+      epochs of the updates' span, rows or not: these are the updates an epoch row's
+      ``used_*`` counts count (``v2v.pipeline.SolutionRunner``);
+    * are of a kind in :data:`EPOCH_NIS_KINDS`;
+    * were accepted. A rejected update's NIS (an innovation beyond the gate: 10.8 and up, a
+      blunder's 10^6) would swamp the mean of an epoch's few updates; the rejections are the
+      ``rejected_*`` counts (the replay's ``rejections`` series);
+    * name ``v``: a pair measurement (a UWB range, a bearing, a pair SD pseudorange: two
+      vehicles) counts once for each of its vehicles, as the ``used_*`` counts do. Its
+      innovation depends on both states (the relative position), and it is not known which
+      of the two a large one indicts.
+
+    For a consistent filter each accepted NIS is chi-square with 1 dof, truncated at the gate
+    k^2 (mean 0.988 at the default significance 1e-3), and the scalar innovations of a
+    sequential update are independent, so the mean of ``n`` of them has expectation ~1 and
+    variance ~2 / n (Bar-Shalom, Li & Kirubarajan 2001, sec. 5.4.2). The mean is NaN (0 / 0)
+    where ``counts`` is 0: the vehicle had no accepted update in that interval. (A non-finite
+    NIS, which the filter never records, would be left out.)
+
+    Parameters
+    ----------
+    epoch_t_s : (K,) float, increasing
+        Output epochs, s.
+    vehicle_ids : sequence of str, length V
+        The vehicles to report; other vehicles an update names are skipped.
+    t_s, nis, accepted : (M,) arrays
+        Per update: time tag (s), NIS, accepted flag.
+    kind_code, kind_names : (M,) int array, sequence of str
+        Per update its kind as an index into ``kind_names``.
+    set_code, vehicle_sets : (M,) int array, sequence of tuples of str
+        Per update the vehicles it names, as an index into ``vehicle_sets``.
+
+    Returns
+    -------
+    sums : (K, V) float
+    counts : (K, V) int64
+    """
+    epochs = np.asarray(epoch_t_s, dtype=float).reshape(-1)
+    n_ep, n_sets = len(epochs), len(vehicle_sets)
+    t = np.asarray(t_s, dtype=float).reshape(-1)
+    values = np.asarray(nis, dtype=float).reshape(-1)
+    # each update's epoch: the first with t_s <= epoch + 1e-9 (n_ep: after the last), looked up
+    # once per run of equal time tags (a GNSS epoch's updates share one)
+    starts = np.flatnonzero(np.concatenate([[True], t[1:] != t[:-1]])) if len(t) else np.zeros(0, dtype=np.intp)
+    ep = np.repeat(np.searchsorted(epochs, t[starts] - 1e-9, side="left"), np.diff(starts, append=len(t)))
+    kinds = np.fromiter((k in EPOCH_NIS_KINDS for k in kind_names), dtype=bool, count=len(kind_names))
+    ok = np.asarray(accepted, dtype=bool).reshape(-1) & (ep < n_ep) & np.isfinite(values)
+    ok &= kinds[np.asarray(kind_code, dtype=np.intp).reshape(-1)] if len(kinds) else False
+    # sum and count per (epoch, vehicle set), the updates left out in a last bin ...
+    key = np.where(ok, ep * n_sets + np.asarray(set_code, dtype=np.intp).reshape(-1), n_ep * n_sets)
+    by_set = np.bincount(key, weights=np.where(ok, values, 0.0), minlength=n_ep * n_sets + 1)[:-1]
+    n_by_set = np.bincount(key, minlength=n_ep * n_sets + 1)[:-1].astype(float)
+    # ... then onto each vehicle a set names: times the (sets x vehicles) membership matrix
+    index = {v: i for i, v in enumerate(vehicle_ids)}
+    member = np.zeros((n_sets, len(vehicle_ids)))
+    for i, vs in enumerate(vehicle_sets):
+        for v in vs:
+            if v in index:
+                member[i, index[v]] = 1.0
+    sums = by_set.reshape(n_ep, n_sets) @ member
+    counts = np.rint(n_by_set.reshape(n_ep, n_sets) @ member).astype(np.int64)
+    return sums, counts
 
 
 # ------------------------------------------------------------------ one output epoch, compiled

@@ -33,8 +33,9 @@ path                                archetype        content
 ``errors/<sol>/<veh>/across``       Scalars          across-track error, m
 ``errors/<sol>/<veh>/across_sigma`` Scalars (2)      +1 sigma, -1 sigma, m
 ``errors/<sol>/<veh>/nees``         Scalars          normalized estimation error squared
-``errors/<sol>/<veh>/nis``          Scalars          normalized innovation squared (NaN
-                                                     from ``v2v run``: no per-epoch NIS)
+``errors/<sol>/<veh>/nis``          Scalars          mean NIS of the epoch's accepted
+                                                     measurement updates naming the
+                                                     vehicle (NaN: none); ~1 if consistent
 ``errors/<sol>/<veh>/n_sats``       Scalars          satellites used
 ``errors/<sol>/<veh>/rejections``   Scalars          innovation-test rejections
 ==================================  ===============  ======================================
@@ -49,7 +50,12 @@ epoch without any, after some were drawn, is an empty estimates row, which clear
 each estimate is drawn at its vehicle's true antenna plus its error (``est - true`` ENU,
 turned into net XY by the grid convergence), so its offset from the drawn truth is the
 ``epochs.parquet`` error; ``n_sats`` is ``used_pr`` and ``rejections`` the sum of the
-``rejected_*`` counts of pr, doppler, uwb, bearing and, in a carrier-phase solution, phase. Links: at every step the UWB ranges
+``rejected_*`` counts of pr, doppler, uwb, bearing and, in a carrier-phase solution, phase;
+``nis`` the mean NIS of the accepted updates those ``used_*`` counts count (the output
+interval's SD pseudoranges, Dopplers, phases, UWB ranges and bearings naming the vehicle, a
+pair's for both of its vehicles; rejected ones are in ``rejections``), from the run's update log
+(:func:`v2v.metrics.errors.epoch_nis_sums`): chi-square(1) NIS average ~1 in a consistent
+filter, NaN where the vehicle had no accepted update. Links: at every step the UWB ranges
 and bearings measured since the previous step between vehicles present at it (an empty row
 when there are none, so that no earlier step's links stay drawn), LOS or NLOS ("rejected" is
 never logged by ``v2v run``).
@@ -60,8 +66,9 @@ cluster vehicles blue, background traffic grey. Each error series carries its ow
 blueprint needs no per-view overrides.
 
 The default blueprint: the 3-D world large on the left; on the right, top to bottom,
-along-track error with ±σ, across-track error with ±σ, NEES, satellites/rejections,
-then a row with the sky plots (one tab per vehicle) and a map of the geodetic truth.
+along-track error with ±σ, across-track error with ±σ, NEES (a second tab: NIS),
+satellites/rejections, then a row with the sky plots (one tab per vehicle) and a map of the
+geodetic truth.
 """
 
 from __future__ import annotations
@@ -131,7 +138,7 @@ def series_style(series: str, solution: str, vehicle_id: str, rgb: tuple[int, in
     """How the default blueprint draws the error series ``series`` of (``solution``,
     ``vehicle_id``), ``rgb`` being the solution's colour: the logger logs it static on the
     series' entity. Each series is in one view of the blueprint (along and across: the
-    vehicle's error tab; NEES; satellites used / rejections; NIS in none), so the entity's
+    vehicle's error tab; NEES; NIS; satellites used / rejections), so the entity's
     own style is what that view shows, and the blueprint carries no per-view overrides
     (they were 189 of its 342 chunks at N = 10; sending, flushing and closing the blueprint
     took 55.9 ms with them, 21.4 ms without).
@@ -174,8 +181,9 @@ def default_blueprint(
 
     Left: the 3-D world, the camera following the cluster. Right, top to bottom: along-track
     and across-track error with +-1 sigma (one tab per vehicle, one colour per solution, the
-    whole run on the time axis), position NEES, satellites used / rejections, and the sky
-    plots (one tab per vehicle) beside the map. Side panels start collapsed.
+    whole run on the time axis), position NEES with the per-epoch NIS in a second tab,
+    satellites used / rejections, and the sky plots (one tab per vehicle) beside the map.
+    Side panels start collapsed.
 
     Parameters
     ----------
@@ -207,7 +215,8 @@ def _default_blueprint(
         right.append(rrb.Tabs(*[_error_view("Across-track error ±1σ [m]", sols, v, "across") for v in vehicle_ids]))
     else:
         right.append(_series_view("Along-track error ±1σ [m]", pairs, ("along", "along_sigma")))
-    right.append(_series_view("NEES (position, 3 dof)", pairs, ("nees",)))
+    right.append(rrb.Tabs(_series_view("NEES (position, 3 dof)", pairs, ("nees",)),
+                          _series_view("NIS (epoch mean of scalar updates, 1 dof)", pairs, ("nis",))))
     right.append(_series_view("Satellites used / rejections", pairs, ("n_sats", "rejections")))
     bottom: list[rrb.Container | rrb.View] = []
     if sky_vehicle_ids:
