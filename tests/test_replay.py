@@ -1159,3 +1159,23 @@ def test_an_epoch_without_initialized_vehicles_clears_the_estimates(tmp_path):
     assert rej == [[2.0], [3.0]]  # every rejected_* count, the carrier phase's too
     t_nis, nis = _column(chunks[bp.error_path("GPS", "veh.1", "nis")], "Scalars:scalars")
     assert [round(x / 1e8) for x in t_nis] == [0, 2] and nis[0] == [1.0] and np.isnan(nis[1][0])
+
+
+def test_real_run_measurement_statistics_pool_the_clusters(real_run):
+    """summary.json's per-solution measurement statistics cover every cluster's filter (before
+    2026-12-05 a run with several clusters had none: they were keyed "cluster/solution" and
+    looked up by solution). Checked against epochs.parquet, counted independently of the
+    update log: each accepted SD Doppler names one vehicle and falls in one output interval, so
+    the solution's used Dopplers are the sum of its rows' ``used_doppler`` over both clusters;
+    likewise the rejected ones."""
+    _, _, epochs, summary, _ = real_run
+    assert set(epochs.cluster) == {"a", "b"}
+    for sol in ("GPS", "GPS+UWB"):
+        meas = summary["statistics"][sol]["measurements"]
+        rows = epochs[epochs.solution == sol]
+        assert meas["sd_doppler"]["used"] == int(rows.used_doppler.sum()) > 0
+        assert meas["sd_doppler"]["rejected"] == int(rows.rejected_doppler.sum())
+        for c in ("a", "b"):  # each cluster contributed
+            assert int(rows[rows.cluster == c].used_doppler.sum()) > 0
+    assert "uwb" in summary["statistics"]["GPS+UWB"]["measurements"]
+    assert "uwb" not in summary["statistics"]["GPS"]["measurements"]

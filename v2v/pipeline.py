@@ -588,28 +588,7 @@ class UpdateLog:
         """Per measurement kind (sorted), :func:`v2v.metrics.summary.update_kind_statistics` of
         the whole run, read back one kind at a time as compact arrays (the same numbers as the
         per-update table's, bit for bit: same values in the same order)."""
-        import pickle
-
-        from v2v.metrics.summary import update_kind_statistics
-
-        self.flush()
-        if self._file is None:
-            return {}
-        kinds: set[str] = set()
-        for cols in self._chunks(pickle):
-            kinds.update(cols["kind_names"])
-        out: dict[str, Any] = {}
-        for kind in sorted(kinds):
-            acc, faulty, nis = [], [], []
-            for cols in self._chunks(pickle):
-                if kind not in cols["kind_names"]:
-                    continue
-                m = cols["kind_code"] == cols["kind_names"].index(kind)
-                acc.append(cols["accepted"][m])
-                faulty.append(cols["faulty"][m])
-                nis.append(cols["nis"][m])
-            out[kind] = update_kind_statistics(np.concatenate(acc), np.concatenate(faulty), np.concatenate(nis), kind)
-        return out
+        return kind_statistics_of([self])
 
     def _chunks(self, pickle: Any):
         self._file.seek(0)
@@ -643,6 +622,38 @@ class UpdateLog:
                     out[k].extend(cols[k].tolist() if isinstance(cols[k], np.ndarray) else cols[k])
         self._file.seek(0, 2)
         return out
+
+
+def kind_statistics_of(logs: Sequence[UpdateLog]) -> dict[str, Any]:
+    """Per measurement kind (sorted), :func:`v2v.metrics.summary.update_kind_statistics` of the
+    updates of all of ``logs`` together, log after log, each in update order: one solution's
+    statistics pooled over the clusters of a run (each cluster has its own filter and log).
+    Of one log: :meth:`UpdateLog.kind_statistics`."""
+    import pickle
+
+    from v2v.metrics.summary import update_kind_statistics
+
+    kinds: set[str] = set()
+    for log in logs:
+        log.flush()
+        if log._file is not None:
+            for cols in log._chunks(pickle):
+                kinds.update(cols["kind_names"])
+    out: dict[str, Any] = {}
+    for kind in sorted(kinds):
+        acc, faulty, nis = [], [], []
+        for log in logs:
+            if log._file is None:
+                continue
+            for cols in log._chunks(pickle):
+                if kind not in cols["kind_names"]:
+                    continue
+                m = cols["kind_code"] == cols["kind_names"].index(kind)
+                acc.append(cols["accepted"][m])
+                faulty.append(cols["faulty"][m])
+                nis.append(cols["nis"][m])
+        out[kind] = update_kind_statistics(np.concatenate(acc), np.concatenate(faulty), np.concatenate(nis), kind)
+    return out
 
 
 def epoch_nis_of_rows(chunks: Sequence[dict[str, Any]], output_times: ArrayLike, row_t_s: ArrayLike,

@@ -344,6 +344,7 @@ def _run_scenario(scenario: Scenario, out_dir: Path, *, quiet: bool, replay: boo
         build_uwb,
         child_seeds,
         empty_epochs_frame,
+        kind_statistics_of,
     )
     from v2v.sensors.gnss.spp import SppChain
     from v2v.sensors.gnss.time import utc_to_gps_s
@@ -652,7 +653,13 @@ def _run_scenario(scenario: Scenario, out_dir: Path, *, quiet: bool, replay: boo
         atomic_write_parquet(tmp / "epochs.parquet", epochs_df if len(epochs_df) else empty_epochs_frame())
         if len(epochs_df):
             # per-update statistics from the compact logs, one kind of one solution at a time
-            meas = {key: rec.log.kind_statistics() for key, rec in recs.items()}
+            # (a solution's over every cluster: the epochs' statistics are per solution, the
+            # clusters' vehicles side by side, and so are its measurements')
+            logs: dict[str, list[Any]] = {}
+            for cl in clusters:
+                for runner, key in zip(cl.runners, cl.keys, strict=True):
+                    logs.setdefault(runner.sol.name, []).append(recs[key].log)
+            meas = {name: kind_statistics_of(group) for name, group in logs.items()}
             sol_stats = solution_statistics(epochs_df, {}, measurements=meas, azimuth_solutions={
                 s.name for s in scenario.solutions if s.azimuth == "estimated"})
             from v2v.metrics.lane import lane_level_rows
