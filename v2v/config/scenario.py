@@ -32,7 +32,14 @@ from pydantic import (
     model_validator,
 )
 
-from v2v.config.sections import ExchangeSection, SensorsSection, SolutionSection, a_path, paper_solutions
+from v2v.config.sections import (
+    NOMINAL_SATELLITES,
+    ExchangeSection,
+    SensorsSection,
+    SolutionSection,
+    a_path,
+    paper_solutions,
+)
 from v2v.errors import UserError, not_a_file
 from v2v.faults import FaultSection
 
@@ -232,6 +239,11 @@ class Scenario(_Model):
             dup = sorted({n for n in sol_names if sol_names.count(n) > 1})
             raise ValueError(f"@solutions: solution name(s) {dup} appear more than once -- fix: give each solution its own name")
         for si, s in enumerate(self.solutions):
+            if self.sensors.gnss.ephemeris == "nominal" and s.gnss_min_satellites > NOMINAL_SATELLITES:
+                raise ValueError(
+                    f"@solutions.{si}.gnss_min_satellites: {s.gnss_min_satellites} satellites in common can never be met:"
+                    f" the nominal sky (sensors.gnss.ephemeris) has {NOMINAL_SATELLITES}, so every epoch's GNSS would be"
+                    f" left out -- fix: give 0 .. {NOMINAL_SATELLITES} (0: every SD is used), or a RINEX ephemeris")
             for sensor in s.sensors:
                 if not getattr(self.sensors, sensor).enabled:
                     raise ValueError(
