@@ -377,3 +377,33 @@ def test_the_cli_refuses_an_unusable_filter_sigma_in_one_line(tmp_path):
         lines = [ln for ln in p.stderr.splitlines() if ln.strip()]
         assert p.returncode == 2 and len(lines) == 1 and "Traceback" not in p.stderr, p.stderr
         assert lines[0].startswith(f"v2v: error: {field}: ") and " -- fix: " in lines[0], lines[0]
+
+
+def test_script_options_blame_the_option_that_set_a_field():
+    """v2v.errors.script_options: an error naming a field an option set (or a part of it: a list's
+    item) names the option, the field after the message, without the "--set" source the scenario
+    would name; the longest matching path wins ("*" matches one part); any other error, and an
+    error outside the block, is unchanged."""
+    from v2v.errors import script_options
+
+    options = {"clusters.0.vehicles": "--vehicles", "clusters.0.lanes": "--lanes", "solutions.*": "--solution-set",
+               "solutions.*.uwb_sigma_m": "--uwb-sigma-m"}
+    cases = [(["clusters.0.vehicles=1"], "--vehicles", "clusters.0.vehicles"),
+             (["clusters.0.lanes=[0, -1]"], "--lanes", "clusters.0.lanes.1"),
+             (['solutions=[{name="a", sensors=["gnss", "uwb"], uwb_sigma_m=inf}]'], "--uwb-sigma-m",
+              "solutions.0.uwb_sigma_m"),
+             (['solutions=[{name="a", sensors=["gnss"], gnss_min_satellites=28}]'], "--solution-set",
+              "solutions.0.gnss_min_satellites")]
+    for overrides, option, field in cases:
+        plain = _error(*overrides)
+        with pytest.raises(UserError) as e, script_options(options):
+            load_scenario(None, overrides)
+        assert (plain.field, e.value.field, e.value.fix) == (field, option, plain.fix), e.value.one_line()
+        assert e.value.message == f"{plain.detail} ({field})" and "--set" not in e.value.one_line()
+        assert "--set" in plain.one_line()  # (outside the block: the scenario's own error)
+    with pytest.raises(UserError) as e, script_options(options):
+        load_scenario(None, ["duration_s=-1"])
+    assert e.value.field == "duration_s"
+    with pytest.raises(UserError) as e, script_options(options):
+        raise UserError("lane 5 is not on the route", field="clusters.0.lanes", fix="use 0..1")  # (a run's set-up)
+    assert e.value.one_line() == "--lanes: lane 5 is not on the route (clusters.0.lanes) -- fix: use 0..1"

@@ -10,19 +10,23 @@ from __future__ import annotations
 import argparse
 import math
 import sys
-from collections.abc import Callable, Iterator
+from collections.abc import Callable, Iterator, Mapping
 from contextlib import contextmanager
 from pathlib import Path
 from typing import Any
 
 
 class UserError(Exception):
-    """A user's input is wrong. ``field`` names what is wrong, ``fix`` says what to do."""
+    """A user's input is wrong. ``field`` names what is wrong, ``fix`` says what to do; ``where``
+    (optional) where the value came from, added to the message as `` in <where>`` (``detail`` is
+    the message without it)."""
 
-    def __init__(self, message: str, *, field: str | None = None, fix: str | None = None):
+    def __init__(self, message: str, *, field: str | None = None, fix: str | None = None, where: str | None = None):
         self.field = field
         self.fix = fix
-        self.message = message
+        self.detail = message
+        self.where = where
+        self.message = message if where is None else f"{message} in {where}"
         super().__init__(self.one_line())
 
     def one_line(self) -> str:
@@ -221,6 +225,41 @@ class ScriptArgumentParser(argparse.ArgumentParser):
 
     def error(self, message: str):  # (exits: argparse's NoReturn)
         self.exit(EXIT_USER_ERROR, f"{self.prog}: error: {message} -- fix: see `{self.prog} --help`\n")
+
+
+def _option_for(field: str | None, options: Mapping[str, str]) -> str | None:
+    """The option of ``options`` (scenario field path -> option) that set ``field``: the longest
+    path that is ``field`` or a path above it (``clusters.0.lanes`` for ``clusters.0.lanes.1``),
+    a ``*`` part matching any one part (``solutions.*.uwb_sigma_m``)."""
+    if not field:
+        return None
+    parts = field.split(".")
+    best: tuple[int, str] | None = None
+    for path, option in options.items():
+        want = path.split(".")
+        if len(want) <= len(parts) and all(w in ("*", p) for w, p in zip(want, parts, strict=False)):
+            if best is None or len(want) > best[0]:
+                best = (len(want), option)
+    return best[1] if best else None
+
+
+@contextmanager
+def script_options(options: Mapping[str, str]) -> Iterator[None]:
+    """Inside, an error naming a scenario field that a script's option set names the option
+    the user typed instead, the field after the message: ``--vehicles: Input should be greater
+    than or equal to 2 (got 1) (clusters.0.vehicles) -- fix: use a value >= 2``. ``options`` maps
+    scenario field paths to the options that set them (see :func:`_option_for`). Around the
+    loading *and* the running of an experiment's scenario: the run's set-up refuses what only it
+    can check (a lane the net lacks, a RINEX file that does not span the start). Errors naming
+    no mapped field pass unchanged."""
+    try:
+        yield
+    except UserError as exc:
+        option = _option_for(exc.field, options)
+        if option is None:
+            raise
+        # (without where the scenario's values came from: "the command line's --set", in a script)
+        raise UserError(f"{exc.detail} ({exc.field})", field=option, fix=exc.fix) from None
 
 
 def script_main(main: Callable[[], int | None], prog: str) -> int:

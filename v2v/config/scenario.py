@@ -416,7 +416,7 @@ def _format_validation_error(err: ValidationError, data: dict[str, Any], source:
         loc = f"{loc}.{own}" if loc else own
     got = e.get("input")
     got_s = f" (got {got!r})" if not isinstance(got, dict | list) and got is not None and _quotes_not(msg, got) else ""
-    return UserError(f"{msg}{got_s} in {source}", field=loc or "scenario", fix=fix)
+    return UserError(f"{msg}{got_s}", field=loc or "scenario", fix=fix, where=source)
 
 
 # pydantic's tag of a union's member in an error's loc: ("faults", 0, "vehicles", "literal['all']")
