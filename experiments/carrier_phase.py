@@ -93,11 +93,20 @@ def check_solution_set(items: tuple[str, ...]) -> None:
                             fix=f"use one of {', '.join(fields)}")
 
 
+# the scenario fields the options set, in every part (an error naming one names the option:
+# v2v.errors.script_options); --solution-set's items go into every solution of parts 1-2
+OPTIONS = {"seed": "--seeds", "clusters.0.lanes": "--lanes", "clusters.0.time_gap_s": "--time-gap-s",
+           "sensors.uwb.profile": "--uwb-profile", "solutions.*.uwb_sigma_m": "--uwb-sigma-m",
+           "solutions.*": "--solution-set"}
+
+
 def _run(overrides: list[str], folder: Path, scenario: Path | None = None, save: bool = False) -> Path:
     from v2v.config.scenario import load_scenario
+    from v2v.errors import script_options
     from v2v.run import run_scenario
 
-    run_scenario(load_scenario(scenario, overrides), folder, quiet=True, replay=False, save_measurements=save)
+    with script_options(OPTIONS):
+        run_scenario(load_scenario(scenario, overrides), folder, quiet=True, replay=False, save_measurements=save)
     return folder
 
 
@@ -198,12 +207,14 @@ def check_degraded_options(args: argparse.Namespace) -> None:
     --time-gap-s) or for its solutions: found before any part runs, not after the first part's
     runs and files."""
     from v2v.config.scenario import load_scenario
+    from v2v.errors import script_options
     from v2v.run import check_scenario
 
     sols = _phase_solutions(args.uwb_sigma_m, bearing=False, extra=args.solution_set)
-    for seed in args.seeds:
-        sc = load_scenario(None, [*_degraded_base(args), f"seed={seed}", sols])
-    check_scenario(sc)  # (the net and the lanes on its route: the same for every seed)
+    with script_options(OPTIONS):
+        for seed in args.seeds:
+            sc = load_scenario(None, [*_degraded_base(args), f"seed={seed}", sols])
+        check_scenario(sc)  # (the net and the lanes on its route: the same for every seed)
 
 
 def part_degraded(args: argparse.Namespace, out: Path) -> tuple[pd.DataFrame, pd.DataFrame]:
@@ -224,6 +235,11 @@ def part_degraded(args: argparse.Namespace, out: Path) -> tuple[pd.DataFrame, pd
         variants = [("masked from the start", 0.0, None)] + ([] if args.quick else [("masked after init", t_mask, t_slip)])
         for variant, t0, t_sl in variants:
             low, mask_deg = _low_prns(probe, t0, args.keep)
+            if not low:  # (the sky is known from the probe run only)
+                from v2v.errors import UserError
+
+                raise UserError(f"keeps every satellite the lead sees at t = {t0:g} s (seed {seed}): none to remove",
+                                field="--keep", fix="give --keep below the satellites in view (e.g. 4)")
             faults = [f"{{kind=\"satellites_lost\", start_s={t0}, duration_s={dur - t0 + 1.0}, prns={low}}}"]
             if t_sl is not None:
                 faults.append(f"{{kind=\"cycle_slip\", start_s={t_sl}, vehicles=[\"c1.1\", \"c1.2\"], size_cycles=3}}")

@@ -85,6 +85,16 @@ class Case:
     outage: tuple[float, float] | None = None  # (start_s, duration_s), every vehicle
     solutions: tuple[str, ...] = tuple(SOLUTIONS)
     extra: dict[str, str] = field(default_factory=dict)
+    vehicles_option: str | None = None  # the option ``vehicles`` came from (None: the script's own)
+
+    def options(self) -> dict[str, str]:
+        """The scenario fields the script's options set (an error naming one names the option:
+        v2v.errors.script_options)."""
+        out = {"seed": "--seed"} | ({"clusters.0.vehicles": self.vehicles_option} if self.vehicles_option else {})
+        if self.outage is None:
+            return out | {"duration_s": "--duration-s"}
+        return out | {"duration_s": "--outage-start-s, --outage-duration-s", "faults.0.start_s": "--outage-start-s",
+                      "faults.0.duration_s": "--outage-duration-s"}
 
     def overrides(self, seed: int) -> list[str]:
         h = "" if self.height_aiding_sigma_m is None else f", height_aiding_sigma_m = {self.height_aiding_sigma_m}"
@@ -117,16 +127,18 @@ def height_aided_pipeline() -> Iterator[None]:
 
 def run_case(case: Case, seed: int, out: Path, *, aided: bool = False) -> Path:
     from v2v.config.scenario import load_scenario
+    from v2v.errors import script_options
     from v2v.run import run_scenario
 
-    sc = load_scenario(None, case.overrides(seed))
     folder = out / "runs" / f"{case.sweep}_{case.label}"
     t0 = time.perf_counter()
-    if aided:
-        with height_aided_pipeline():
+    with script_options(case.options()):
+        sc = load_scenario(None, case.overrides(seed))
+        if aided:
+            with height_aided_pipeline():
+                run_scenario(sc, folder, quiet=True, replay=False)
+        else:
             run_scenario(sc, folder, quiet=True, replay=False)
-    else:
-        run_scenario(sc, folder, quiet=True, replay=False)
     print(f"  {case.sweep}/{case.label}: {time.perf_counter() - t0:.1f} s", file=sys.stderr, flush=True)
     return folder
 
@@ -404,8 +416,9 @@ def check_options(args: argparse.Namespace) -> None:
     import math
 
     from v2v.config.scenario import load_scenario
-    from v2v.errors import UserError, check_positive
+    from v2v.errors import UserError, check_positive, script_options
 
+    check_positive(args.duration_s, "--duration-s")
     check_positive(args.outage_duration_s, "--outage-duration-s")
     if not (args.outage_start_s >= 0.0 and math.isfinite(args.outage_start_s)):
         raise UserError(f"{args.outage_start_s!r} is not a time >= 0 s", field="--outage-start-s",
@@ -413,16 +426,20 @@ def check_options(args: argparse.Namespace) -> None:
     if not 0.0 <= args.converge_s < args.duration_s:
         raise UserError(f"{args.converge_s:g} s is not in [0, duration) = [0, {args.duration_s:g})", field="--converge-s",
                         fix=f"give 0 <= --converge-s < --duration-s ({args.duration_s:g} s)")
-    cases = [Case(sweep="vehicles", label="check", x=n, vehicles=n, lanes=lanes, duration_s=args.duration_s)
-             for ns, lanes in ((args.vehicles, (0,)), (args.vehicles_3lanes, (0, 1, 2))) for n in ns]
+    cases = [Case(sweep="vehicles", label="check", x=n, vehicles=n, lanes=lanes, duration_s=args.duration_s,
+                  vehicles_option=opt)
+             for ns, lanes, opt in ((args.vehicles, (0,), "--vehicles"), (args.vehicles_3lanes, (0, 1, 2), "--vehicles-3lanes"))
+             for n in ns]
     if not args.quick:
         cases.append(Case(sweep="lanes", label="check", x=3, vehicles=args.lanes_vehicles, lanes=(0, 1, 2),
-                          duration_s=args.duration_s))
+                          duration_s=args.duration_s, vehicles_option="--lanes-vehicles"))
     cases += [Case(sweep="outage", label="check", x=n, vehicles=n, lanes=(0,), duration_s=outage_duration_s(args),
-                   height_aiding_sigma_m=1.0, outage=(args.outage_start_s, args.outage_duration_s))
+                   height_aiding_sigma_m=1.0, outage=(args.outage_start_s, args.outage_duration_s),
+                   vehicles_option="--outage-vehicles")
               for n in args.outage_vehicles]
     for c in cases:
-        load_scenario(None, c.overrides(args.seed))
+        with script_options(c.options()):
+            load_scenario(None, c.overrides(args.seed))
 
 
 def main(argv: list[str] | None = None) -> int:
@@ -438,9 +455,11 @@ def main(argv: list[str] | None = None) -> int:
 
     # (a) number of vehicles, one lane (and three lanes)
     print("(a) vehicles", file=sys.stderr)
-    cases = [Case(sweep="vehicles", label=f"n{n}_1lane", x=n, vehicles=n, lanes=(0,), duration_s=dur)
+    cases = [Case(sweep="vehicles", label=f"n{n}_1lane", x=n, vehicles=n, lanes=(0,), duration_s=dur,
+                  vehicles_option="--vehicles")
              for n in args.vehicles]
-    cases += [Case(sweep="vehicles", label=f"n{n}_3lanes", x=n, vehicles=n, lanes=(0, 1, 2), duration_s=dur)
+    cases += [Case(sweep="vehicles", label=f"n{n}_3lanes", x=n, vehicles=n, lanes=(0, 1, 2), duration_s=dur,
+                   vehicles_option="--vehicles-3lanes")
               for n in args.vehicles_3lanes]
     pv = sweep(cases, seed, conv, out)
     per_vehicle.append(pv)
@@ -457,7 +476,8 @@ def main(argv: list[str] | None = None) -> int:
         # (b) lanes
         print("(b) lanes", file=sys.stderr)
         n = args.lanes_vehicles
-        cases = [Case(sweep="lanes", label=f"{len(ln)}lanes_n{n}", x=len(ln), vehicles=n, lanes=ln, duration_s=dur)
+        cases = [Case(sweep="lanes", label=f"{len(ln)}lanes_n{n}", x=len(ln), vehicles=n, lanes=ln, duration_s=dur,
+                      vehicles_option="--lanes-vehicles")
                  for ln in ((0,), (0, 1), (0, 1, 2))]
         pv = sweep(cases, seed, conv, out)
         per_vehicle.append(pv)
@@ -506,7 +526,7 @@ def main(argv: list[str] | None = None) -> int:
             if variant == "pipeline" and n != args.outage_vehicles[0]:
                 continue
             c = Case(sweep="outage", label=f"n{n}_{variant}", x=n, vehicles=n, lanes=(0,), duration_s=odur,
-                     height_aiding_sigma_m=1.0, outage=(t0, args.outage_duration_s))
+                     height_aiding_sigma_m=1.0, outage=(t0, args.outage_duration_s), vehicles_option="--outage-vehicles")
             s, ts = outage_statistics(run_case(c, seed, out, aided=aided), t0, t1, f"{variant}, {n} vehicles")
             s.insert(1, "vehicles", n)
             stats.append(s)

@@ -271,11 +271,13 @@ def run_case(case: Case, out_dir: Path) -> Row:
     """One run, then its truth metrics."""
     import pandas as pd
 
+    from v2v.errors import script_options
     from v2v.run import resolve_network, run_scenario
 
-    sc = scenario_for(case)
-    t0 = time.perf_counter()
-    res = run_scenario(sc, out_dir, quiet=True, replay=False)
+    with script_options({"duration_s": "--duration"}):  # (the one option that sets a scenario field)
+        sc = scenario_for(case)
+        t0 = time.perf_counter()
+        res = run_scenario(sc, out_dir, quiet=True, replay=False)
     wall = time.perf_counter() - t0
     s = res.summary
     truth = pd.read_parquet(out_dir / "truth.parquet")

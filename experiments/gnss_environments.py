@@ -69,13 +69,20 @@ def _overrides(net: str, args: argparse.Namespace) -> list[str]:
     return ov
 
 
+# the scenario fields the options set (an error naming one names the option: v2v.errors.script_options)
+OPTIONS = {"network.name": "--nets", "duration_s": "--duration-s", "seed": "--seed", "clusters.0.vehicles": "--vehicles",
+           "start_utc": "--start-utc", "sensors.gnss.ephemeris": "--rinex"}
+
+
 def run_net(net: str, args: argparse.Namespace, out: Path) -> NetRun:
     from v2v.config.scenario import load_scenario
+    from v2v.errors import script_options
     from v2v.run import run_scenario
 
-    sc = load_scenario(None, _overrides(net, args))
     folder = out / "runs" / net
-    run_scenario(sc, folder, quiet=True, replay=False, save_measurements=True)
+    with script_options(OPTIONS):
+        sc = load_scenario(None, _overrides(net, args))
+        run_scenario(sc, folder, quiet=True, replay=False, save_measurements=True)
     m = pd.read_parquet(folder / "measurements.parquet")
     truth = pd.read_parquet(folder / "truth.parquet")
     # SUMO's clock carries float rounding (0.30000000000000007): key every row by whole

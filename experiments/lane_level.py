@@ -62,12 +62,20 @@ def scenario_overrides(args: argparse.Namespace, variant: str, out: Path, lanes:
     return ov
 
 
-def run_variant(args: argparse.Namespace, variant: str, out: Path, lanes: list[int]) -> Path:
+# the scenario fields the common options set (an error naming one names the option: v2v.errors.script_options)
+COMMON_OPTIONS = {"network.name": "--net", "duration_s": "--duration-s", "seed": "--seed",
+                  "clusters.0.vehicles": "--vehicles", "sensors.gnss.ephemeris": "--rinex", "start_utc": "--start-utc"}
+
+
+def run_variant(args: argparse.Namespace, variant: str, out: Path, lanes: list[int], lanes_option: str | None = None) -> Path:
+    """One variant's run; ``lanes_option``: the option ``lanes`` came from, if any."""
     from v2v.config.scenario import load_scenario
+    from v2v.errors import script_options
     from v2v.run import run_scenario
 
     folder = out / "runs" / variant
-    run_scenario(load_scenario(None, scenario_overrides(args, variant, out, lanes)), folder, quiet=True, replay=False)
+    with script_options(COMMON_OPTIONS | ({"clusters.0.lanes": lanes_option} if lanes_option else {})):
+        run_scenario(load_scenario(None, scenario_overrides(args, variant, out, lanes)), folder, quiet=True, replay=False)
     return folder
 
 
@@ -135,7 +143,7 @@ def main(argv: list[str] | None = None) -> int:
 
     tables, pooled, epochs_by_variant = [], [], {}
     for variant in args.variants:
-        folder = run_variant(args, variant, out, args.lanes)
+        folder = run_variant(args, variant, out, args.lanes, "--lanes")
         ep_path = folder / "epochs.parquet"
         ep = pd.read_parquet(ep_path) if ep_path.is_file() else pd.DataFrame()
         truth = pd.read_parquet(folder / "truth.parquet")

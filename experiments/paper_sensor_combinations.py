@@ -114,26 +114,42 @@ def parse_args(argv: list[str] | None) -> argparse.Namespace:
     for key, value in chosen.items():
         if getattr(args, key) is None:
             setattr(args, key, value)
-    if not 0.0 <= args.settle_s < args.duration_s:
-        from v2v.errors import UserError
+    from v2v.errors import UserError, check_positive
 
+    check_positive(args.duration_s, "--duration-s")
+    if not 0.0 <= args.settle_s < args.duration_s:
         raise UserError(f"{args.settle_s:g} s is not in [0, duration) = [0, {args.duration_s:g})", field="--settle-s",
                         fix=f"give 0 <= --settle-s < --duration-s ({args.duration_s:g} s)")
+    for net in args.nets:  # every run's scenario, before the first run: a bad later --seeds was found after runs
+        for seed in args.seeds:
+            scenario_of(net, seed, args.duration_s)
     return args
 
 
 # ------------------------------------------------------------------------------ runs
 
+# the scenario fields the options set (an error naming one names the option: v2v.errors.script_options)
+OPTIONS = {"network.name": "--nets", "seed": "--seeds", "duration_s": "--duration-s"}
+
+
+def scenario_of(net: str, seed: int, duration_s: float):
+    """The scenario of one run: the paper's three-vehicle, one-lane cluster with the paper's solutions."""
+    from v2v.config.scenario import load_scenario
+    from v2v.errors import script_options
+
+    with script_options(OPTIONS):
+        return load_scenario(None, [f'network.name="{net}"', f"seed={seed}", f"duration_s={duration_s}",
+                                    "clusters.0.vehicles=3", "clusters.0.lanes=[0]", *PAPER_BEARING_OVERRIDES])
+
 
 def run_one(net: str, seed: int, duration_s: float, out: Path) -> Path:
     """One simulator run of the paper's three-vehicle, one-lane cluster with the paper's solutions."""
-    from v2v.config.scenario import load_scenario
+    from v2v.errors import script_options
     from v2v.run import run_scenario
 
-    sc = load_scenario(None, [f'network.name="{net}"', f"seed={seed}", f"duration_s={duration_s}",
-                              "clusters.0.vehicles=3", "clusters.0.lanes=[0]", *PAPER_BEARING_OVERRIDES])
     folder = out / "runs" / f"{net}_seed{seed}"
-    run_scenario(sc, folder, quiet=True, replay=False)
+    with script_options(OPTIONS):
+        run_scenario(scenario_of(net, seed, duration_s), folder, quiet=True, replay=False)
     return folder
 
 

@@ -187,7 +187,7 @@ def plot_pairs(network, ranges, fits: pd.DataFrame, path: Path) -> None:
 
 def scenario_overrides(args: argparse.Namespace) -> list[str]:
     speeds = np.linspace(args.max_speed_mps, args.max_speed_mps - args.speed_step_mps * (args.vehicles - 1),
-                         args.vehicles)
+                         max(args.vehicles, 0))  # (a negative count: the scenario's check names --vehicles)
     ov = [
         'network.name="open_highway"', f"duration_s={args.duration_s}", f"seed={args.seed}",
         f"clusters.0.vehicles={args.vehicles}", "clusters.0.lanes=[0,1]", f"clusters.0.time_gap_s={args.time_gap_s}",
@@ -227,10 +227,15 @@ def main(argv: list[str] | None = None) -> int:
 
     make_folder(out)
     from v2v.config.scenario import load_scenario
+    from v2v.errors import script_options
     from v2v.sensors.uwb import plot_uwb_error_figures
 
-    sc = load_scenario(None, scenario_overrides(args))
-    d = drive(sc)
+    speed = "--max-speed-mps, --speed-step-mps"  # (each vehicle type's top speed comes from both)
+    with script_options({"duration_s": "--duration-s", "seed": "--seed", "clusters.0.vehicles": "--vehicles",
+                         "clusters.0.vehicle_type": "--vehicles", "clusters.0.time_gap_s": "--time-gap-s",
+                         "sensors.uwb.profile": "--profile", "vehicle_types.*.max_speed_mps": speed}):
+        sc = load_scenario(None, scenario_overrides(args))
+        d = drive(sc)
     network, ranges = synthesize_uwb(d)
     fits = pair_fits(network, ranges, min_ranges=20, min_span_m=10.0)
     fits.to_csv(out / "uwb_pair_fits.csv", index=False)

@@ -187,16 +187,21 @@ def main(argv: list[str] | None = None) -> int:
 
     make_folder(out)
     from v2v.config.scenario import load_scenario
+    from v2v.errors import script_options
     from v2v.pipeline import build_bearing
     from v2v.sensors.uwb import profile_by_name
 
-    sc = load_scenario(None, [
-        f'network.name="{args.net}"', f"duration_s={args.duration_s}", f"seed={args.seed}",
-        f"clusters.0.vehicles={args.vehicles}", "clusters.0.lanes=[0,1,2]", f"clusters.0.time_gap_s={args.time_gap_s}",
-        f"background.vehicles_per_hour={args.vph}", f"background.truck_fraction={args.truck_fraction}",
-        f'sensors.uwb.profile="{args.profile}"', "solutions=[]",
-    ])
-    d = drive(sc)
+    with script_options({"network.name": "--net", "duration_s": "--duration-s", "seed": "--seed",
+                         "clusters.0.vehicles": "--vehicles", "clusters.0.time_gap_s": "--time-gap-s",
+                         "background.vehicles_per_hour": "--vehicles-per-hour",
+                         "background.truck_fraction": "--truck-fraction", "sensors.uwb.profile": "--profile"}):
+        sc = load_scenario(None, [
+            f'network.name="{args.net}"', f"duration_s={args.duration_s}", f"seed={args.seed}",
+            f"clusters.0.vehicles={args.vehicles}", "clusters.0.lanes=[0,1,2]", f"clusters.0.time_gap_s={args.time_gap_s}",
+            f"background.vehicles_per_hour={args.vph}", f"background.truck_fraction={args.truck_fraction}",
+            f'sensors.uwb.profile="{args.profile}"', "solutions=[]",
+        ])
+        d = drive(sc)
     network, ranges = synthesize_uwb(d)
     bearings = synthesize_bearings(d)
     max_range = profile_by_name(args.profile).max_range_m

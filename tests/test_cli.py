@@ -259,6 +259,48 @@ def test_shipped_scenarios_validate(capsys):
         assert sc.name == f.stem
 
 
+def test_shipped_and_default_scenarios_warn_of_nothing():
+    from v2v.config.scenario import load_scenario
+
+    for f in [None, *sorted((REPO / "scenarios").glob("*.toml"))]:
+        assert load_scenario(f).sparse_sensor_warnings() == [], f
+
+
+def test_a_sensor_too_slow_for_the_run_is_a_warning_not_an_error():
+    """Fewer than 2 GNSS epochs (the output epochs: one GNSS epoch gives statistics of one
+    epoch, a std of none) or bearing epochs in the run is one line naming the rate, the epochs
+    the results rest on and both fixes. Boundary: a period of exactly duration_s gives 2 epochs
+    (t_s = 0 and duration_s) and no warning; the next longer one, 1."""
+    from v2v.config.scenario import load_scenario
+
+    def warnings(*ov: str) -> list[str]:
+        return load_scenario(None, list(ov)).sparse_sensor_warnings()
+
+    assert warnings("duration_s=60", "sensors.gnss.rate_hz=0.02") == []  # 50 s: epochs at 0 and 50 s
+    assert warnings("duration_s=50", "sensors.gnss.rate_hz=0.02") == []  # 50 s: epochs at 0 and 50 s
+    (w,) = warnings("duration_s=49.9", "sensors.gnss.rate_hz=0.02")
+    assert w.startswith("sensors.gnss.rate_hz: ") and "rest on 1 epoch" in w and "\n" not in w, w
+    assert "fix: raise sensors.gnss.rate_hz" in w and "duration_s to 50 s or more" in w, w
+    bearing = ["duration_s=0.5", "sensors.bearing.rate_hz=1.9"]
+    (w,) = warnings(*bearing)
+    assert w.startswith("sensors.bearing.rate_hz: ") and "at 1 epoch" in w, w
+    assert warnings(*bearing, 'solutions=[{name="g", sensors=["gnss"]}]') == []  # no solution uses bearings
+
+
+def test_run_and_check_print_the_warning_as_they_start_also_quiet(tmp_path):
+    """A 2 s run at 0.4 Hz GNSS (one epoch, t_s = 0) runs, exit 0, and says so first on stderr,
+    with --quiet too; `v2v scenario check` says it as well."""
+    ov = ["--set", "duration_s=2", "--set", "sensors.gnss.rate_hz=0.4", "--set", 'solutions=[{name="g", sensors=["gnss"]}]']
+    p = _v2v("demo", "--quiet", "--no-replay", "--out", str(tmp_path / "r"), *ov, cwd=tmp_path)
+    lines = [ln for ln in p.stderr.splitlines() if ln.strip()]
+    assert p.returncode == 0 and lines and lines[0].startswith("v2v: warning: sensors.gnss.rate_hz: "), p.stderr
+    assert "rest on 1 epoch" in lines[0] and (tmp_path / "r" / "summary.json").is_file()
+    sc = tmp_path / "s.toml"
+    sc.write_text("name = 's'\n")
+    p = _v2v("scenario", "check", str(sc), *ov, cwd=tmp_path)
+    assert p.returncode == 0 and "v2v: warning: sensors.gnss.rate_hz: " in p.stderr, p.stderr
+
+
 def test_replay_command_points_at_the_recording(tmp_path):
     from v2v.cli import replay_command
     from v2v.errors import UserError

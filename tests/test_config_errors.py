@@ -246,3 +246,164 @@ def test_a_polygon_file_that_is_a_folder_or_empty_says_so(tmp_path):
         with pytest.raises(UserError) as e:
             check_scenario(load_scenario(None, [f"network.polygon_files=[{given!r}]"]))
         assert e.value.field == "network.polygon_files.0" and e.value.message.endswith(why), e.value.one_line()
+
+
+# ------------------------------------------------------------------ what the filter can use
+
+
+def _solution_error(**fields: object) -> UserError:
+    items = ", ".join(f"{k}={v}" for k, v in fields.items())
+    return _error(f'solutions=[{{name="s", sensors=["gnss", "uwb", "bearing"], {items}}}]')
+
+
+def _one_line_naming(err: UserError, field: str) -> None:
+    line = err.one_line()
+    assert err.field == f"solutions.0.{field}" and "\n" not in line and " -- fix: " in line, line
+
+
+def test_gnss_min_satellites_is_at_most_what_a_sky_can_hold():
+    """A count of satellites in common with the lead that no sky can give left every epoch's
+    GNSS out, silently. v2v tracks GPS only (PRNs 1-32): 32 is the most any sky can hold, the
+    nominal one's 27 slots the most it holds; one more is refused, naming the field and its range."""
+    from v2v.config.sections import GPS_MAX_PRN, NOMINAL_SATELLITES
+
+    assert (GPS_MAX_PRN, NOMINAL_SATELLITES) == (32, 27)
+    sol = 'solutions=[{{name="s", sensors=["gnss"], gnss_min_satellites={}}}]'
+    assert load_scenario(None, [sol.format(27)]).solutions[0].gnss_min_satellites == 27
+    err = _error(sol.format(28))
+    _one_line_naming(err, "gnss_min_satellites")
+    assert "nominal sky" in err.message and err.fix.startswith("give 0 .. 27"), err.one_line()
+    rinex = 'sensors.gnss.ephemeris="brdc1180.21n"'  # (a file's existence is the set-up's check)
+    assert load_scenario(None, [rinex, sol.format(32)]).solutions[0].gnss_min_satellites == 32
+    for n in (33, 1000):
+        err = _error(rinex, sol.format(n))
+        _one_line_naming(err, "gnss_min_satellites")
+        assert "PRNs 1-32" in err.message and err.fix.startswith("give 0 .. 32"), err.one_line()
+    err = _error(sol.format(-1))
+    _one_line_naming(err, "gnss_min_satellites")
+    assert err.fix.startswith("give 0 .. 32"), err.one_line()
+
+
+def test_the_nominal_sky_has_the_satellites_the_bound_says():
+    from v2v.config.sections import NOMINAL_SATELLITES
+    from v2v.sensors.gnss.source import ephemeris_source
+
+    sky = ephemeris_source("nominal", 1_300_000_000.0, 60.0)
+    assert len(set(int(p) for p in sky.prns())) == NOMINAL_SATELLITES
+
+
+# every solution field the filter squares into a variance: (field, factor to the filter's unit, 0 = off)
+_DEG = math.pi / 180.0
+FILTER_SIGMAS = [("pseudorange_sigma_m", 1.0, False), ("doppler_sigma_mps", 1.0, False), ("uwb_sigma_m", 1.0, False),
+                 ("bearing_sigma_deg", _DEG, False), ("velocity_sigma_horizontal_mps", 1.0, False),
+                 ("velocity_sigma_vertical_mps", 1.0, False), ("clock_drift_sigma_mps", 1.0, False),
+                 ("height_aiding_sigma_m", 1.0, False), ("phase_sigma_m", 1.0, False),
+                 ("azimuth_rw_deg_per_sqrt_s", _DEG, True), ("yaw_rate_sigma_deg_s", _DEG, True)]
+
+
+def test_the_list_of_filter_sigmas_is_every_sigma_field_of_a_solution():
+    from v2v.config.sections import _FILTER_SIGMAS, SolutionSection
+
+    names = {f for f in SolutionSection.model_fields if "sigma" in f or "_rw_" in f}
+    assert names == {f for f, _, _ in FILTER_SIGMAS} == set(_FILTER_SIGMAS)
+
+
+def _edge(x: float, ok, toward: float) -> tuple[float, float]:
+    """(last accepted, first refused) float64 stepping from ``x``, within a few ulps of the edge,
+    toward ``toward``."""
+    for _ in range(8):  # (x refused: step back inside first)
+        if ok(x):
+            break
+        x = math.nextafter(x, -toward if toward else math.inf)
+    for _ in range(8):
+        if not ok(math.nextafter(x, toward)):
+            break
+        x = math.nextafter(x, toward)
+    assert ok(x) and not ok(math.nextafter(x, toward))
+    return x, math.nextafter(x, toward)
+
+
+@pytest.mark.parametrize(("field", "to_filter", "zero_is_off"), FILTER_SIGMAS)
+def test_a_filter_sigma_must_give_a_positive_normal_float64_variance(field, to_filter, zero_is_off):
+    """inf, a sigma whose square underflows to 0 (a zero-variance scalar update divides by ~0) and
+    one whose 2 sigma^2 overflows to inf are refused in one line naming the field and its range.
+    Boundary: in the filter's unit (radians for a *_deg field, the pipeline's conversion) the
+    smallest accepted sigma is 2^-511 (its square is float64's smallest normal, 2^-1022) and
+    the largest sqrt(max / 2) (2 sigma^2 is the largest finite float64); the floats next to them
+    are refused. Both ends the fix prints are accepted."""
+    from v2v.errors import SIGMA_MAX, SIGMA_MIN
+
+    def ok(v: float) -> bool:
+        try:
+            load_scenario(None, [f'solutions=[{{name="s", sensors=["gnss", "bearing"], {field}={v!r}}}]'])
+        except UserError:
+            return False
+        return True
+
+    for bad in ("inf", "-inf", "1e-300", "1e200", "-1.0") + (() if zero_is_off else ("0.0",)):
+        err = _solution_error(**{field: bad})
+        _one_line_naming(err, field)
+        if bad not in ("-1.0", "0.0", "-inf"):
+            assert err.fix.startswith(f"give {field} in ["), err.one_line()
+    if zero_is_off:
+        assert getattr(load_scenario(None, [f'solutions=[{{name="s", sensors=["gnss"], {field}=0.0}}]']).solutions[0],
+                       field) == 0.0
+    lo_ok, lo_bad = _edge(SIGMA_MIN / to_filter, ok, 0.0)
+    hi_ok, hi_bad = _edge(SIGMA_MAX / to_filter, ok, math.inf)
+    if to_filter == 1.0:
+        assert (lo_ok, hi_ok) == (SIGMA_MIN, SIGMA_MAX) == (2.0 ** -511, 9.480751908109176e153)
+    assert (lo_ok * to_filter) ** 2 >= 2.2250738585072014e-308 > (lo_bad * to_filter) ** 2
+    assert math.isfinite(2.0 * (hi_ok * to_filter) ** 2) and not math.isfinite(2.0 * (hi_bad * to_filter) ** 2)
+    printed = _solution_error(**{field: "inf"}).fix.split("[", 1)[1].split("]")[0]
+    assert all(ok(float(x)) for x in printed.split(", ")), printed
+
+
+@pytest.mark.parametrize("field", ["velocity_tau_s", "clock_drift_tau_s", "yaw_rate_tau_s"])
+def test_a_gauss_markov_time_constant_must_be_finite_and_positive(field):
+    """tau = inf (or one so small that the model's rate 1 / tau overflows) is refused in one line
+    naming the field; the smallest normal float64 is accepted."""
+    for bad in ("inf", "nan", "0.0", "-2.0", "1e-310"):
+        _one_line_naming(_solution_error(**{field: bad}), field)
+    sol = f'solutions=[{{name="s", sensors=["gnss"], {field}=2.2250738585072014e-308}}]'
+    assert getattr(load_scenario(None, [sol]).solutions[0], field) == 2.2250738585072014e-308
+
+
+def test_the_cli_refuses_an_unusable_filter_sigma_in_one_line(tmp_path):
+    for kv, field in [("solutions.0.pseudorange_sigma_m=1e-300", "solutions.0.pseudorange_sigma_m"),
+                      ("solutions.0.velocity_tau_s=inf", "solutions.0.velocity_tau_s"),
+                      ("solutions.0.gnss_min_satellites=40", "solutions.0.gnss_min_satellites")]:
+        p = subprocess.run([sys.executable, "-m", "v2v", "scenario", "check", str(SCENARIOS / "open_highway.toml"),
+                            "--set", kv], cwd=tmp_path, capture_output=True, text=True, timeout=300)
+        lines = [ln for ln in p.stderr.splitlines() if ln.strip()]
+        assert p.returncode == 2 and len(lines) == 1 and "Traceback" not in p.stderr, p.stderr
+        assert lines[0].startswith(f"v2v: error: {field}: ") and " -- fix: " in lines[0], lines[0]
+
+
+def test_script_options_blame_the_option_that_set_a_field():
+    """v2v.errors.script_options: an error naming a field an option set (or a part of it: a list's
+    item) names the option, the field after the message, without the "--set" source the scenario
+    would name; the longest matching path wins ("*" matches one part); any other error, and an
+    error outside the block, is unchanged."""
+    from v2v.errors import script_options
+
+    options = {"clusters.0.vehicles": "--vehicles", "clusters.0.lanes": "--lanes", "solutions.*": "--solution-set",
+               "solutions.*.uwb_sigma_m": "--uwb-sigma-m"}
+    cases = [(["clusters.0.vehicles=1"], "--vehicles", "clusters.0.vehicles"),
+             (["clusters.0.lanes=[0, -1]"], "--lanes", "clusters.0.lanes.1"),
+             (['solutions=[{name="a", sensors=["gnss", "uwb"], uwb_sigma_m=inf}]'], "--uwb-sigma-m",
+              "solutions.0.uwb_sigma_m"),
+             (['solutions=[{name="a", sensors=["gnss"], gnss_min_satellites=28}]'], "--solution-set",
+              "solutions.0.gnss_min_satellites")]
+    for overrides, option, field in cases:
+        plain = _error(*overrides)
+        with pytest.raises(UserError) as e, script_options(options):
+            load_scenario(None, overrides)
+        assert (plain.field, e.value.field, e.value.fix) == (field, option, plain.fix), e.value.one_line()
+        assert e.value.message == f"{plain.detail} ({field})" and "--set" not in e.value.one_line()
+        assert "--set" in plain.one_line()  # (outside the block: the scenario's own error)
+    with pytest.raises(UserError) as e, script_options(options):
+        load_scenario(None, ["duration_s=-1"])
+    assert e.value.field == "duration_s"
+    with pytest.raises(UserError) as e, script_options(options):
+        raise UserError("lane 5 is not on the route", field="clusters.0.lanes", fix="use 0..1")  # (a run's set-up)
+    assert e.value.one_line() == "--lanes: lane 5 is not on the route (clusters.0.lanes) -- fix: use 0..1"

@@ -100,9 +100,6 @@ def test_fcw_study_quick(tmp_path: Path):
 
 
 @pytest.mark.parametrize(("script", "args", "field"), [
-    ("fcw_study.py", ["--vehicles", "1"], "clusters.0.vehicles"),
-    ("lane_level.py", ["--rinex", "/nonexistent/brdc.nav", "--duration-s", "2"], "sensors.gnss.ephemeris"),
-    ("carrier_phase.py", ["--seeds", "-1"], "seed"),
     ("covariance_analysis.py", ["--quick"], "--out"),  # --out below a file (every script makes it the same way)
     ("fault_campaign.py", ["--quick", "--trials", "0"], "--trials"),  # (0 meant the default, 300)
     ("lane_level.py", ["--quick", "--across-alert-limit-m", "-1"], "--across-alert-limit-m"),
@@ -112,10 +109,7 @@ def test_fcw_study_quick(tmp_path: Path):
     ("paper_sensor_combinations.py", ["--quick", "--settle-s", "-1"], "--settle-s"),
     # options used only by a later part are checked before the first part runs and writes its tables
     ("covariance_analysis.py", ["--quick", "--outage-start-s", "inf"], "--outage-start-s"),
-    ("covariance_analysis.py", ["--quick", "--outage-vehicles", "1"], "clusters.0.vehicles"),
     ("covariance_analysis.py", ["--quick", "--converge-s", "40"], "--converge-s"),
-    ("carrier_phase.py", ["--quick", "--lanes", "[9]"], "clusters.0.lanes"),
-    ("carrier_phase.py", ["--quick", "--time-gap-s", "0"], "clusters.0.time_gap_s"),
     # --solution-set: not KEY=VALUE, a field that names or defines the script's solutions, an unknown one
     ("carrier_phase.py", ["--quick", "--solution-set", "nokey"], "--solution-set"),
     ("carrier_phase.py", ["--quick", "--solution-set", 'name="x"'], "--solution-set"),
@@ -139,3 +133,58 @@ def test_experiment_scripts_refuse_bad_input_in_one_line(tmp_path, script, args,
     assert p.returncode == 2 and "Traceback" not in p.stderr, p.stderr
     assert len(lines) == 1 and lines[0].startswith(f"{script}: error: {field}: ") and "fix:" in lines[0], lines
     assert not out.exists()
+
+
+@pytest.mark.parametrize(("script", "args", "option", "field"), [
+    ("fcw_study.py", ["--vehicles", "1"], "--vehicles", "clusters.0.vehicles"),
+    ("lane_level.py", ["--rinex", "/nonexistent/brdc.nav", "--duration-s", "2"], "--rinex", "sensors.gnss.ephemeris"),
+    ("lane_level.py", ["--quick", "--lanes", "-1"], "--lanes", "clusters.0.lanes.0"),
+    ("carrier_phase.py", ["--seeds", "-1"], "--seeds", "seed"),
+    ("carrier_phase.py", ["--quick", "--uwb-sigma-m", "1e-300"], "--uwb-sigma-m", "solutions.2.uwb_sigma_m"),
+    ("carrier_phase.py", ["--quick", "--solution-set", "gnss_min_satellites=28"], "--solution-set",
+     "solutions.0.gnss_min_satellites"),
+    ("covariance_analysis.py", ["--quick", "--vehicles", "1"], "--vehicles", "clusters.0.vehicles"),
+    ("gnss_environments.py", ["--vehicles", "1"], "--vehicles", "clusters.0.vehicles"),
+    ("gnss_environments.py", ["--start-utc", "1970-01-01T00:00:00Z"], "--start-utc", "start_utc"),
+    ("paper_uwb_errors.py", ["--vehicles", "-1"], "--vehicles", "clusters.0.vehicles"),  # (was numpy's traceback)
+    ("paper_uwb_errors.py", ["--quick", "--max-speed-mps", "80"], "--max-speed-mps, --speed-step-mps",
+     "vehicle_types.v0.max_speed_mps"),
+    ("uwb_nlos_canyon.py", ["--truck-fraction", "2"], "--truck-fraction", "background.truck_fraction"),
+    ("foundation_check.py", ["--quick", "--duration", "-5"], "--duration", "duration_s"),
+    # found by the run's set-up (the net's lanes), not the scenario's schema
+    ("carrier_phase.py", ["--quick", "--lanes", "[9]"], "--lanes", "clusters.0.lanes"),
+    ("carrier_phase.py", ["--quick", "--time-gap-s", "0"], "--time-gap-s", "clusters.0.time_gap_s"),
+    # options used by a later part or run are checked before the first one runs
+    ("covariance_analysis.py", ["--quick", "--outage-vehicles", "1"], "--outage-vehicles", "clusters.0.vehicles"),
+    ("paper_sensor_combinations.py", ["--quick", "--seeds", "1", "-1"], "--seeds", "seed"),
+])
+def test_a_scenario_field_an_option_set_is_blamed_on_the_option(tmp_path, script, args, option, field):
+    """An experiment passes its options into a scenario; the scenario's check (or the run's
+    set-up) then refuses a field. The one line names the option the user typed, the scenario
+    field after the message (v2v.errors.script_options), not the field alone, nor "the command
+    line's --set"; exit status 2, nothing written."""
+    import subprocess
+    import sys
+
+    out = tmp_path / "out"
+    p = subprocess.run([sys.executable, str(EXP / script), "--out", str(out), *args], capture_output=True, text=True,
+                       timeout=300)
+    lines = [ln for ln in p.stderr.splitlines() if ln.strip()]
+    assert p.returncode == 2 and "Traceback" not in p.stderr, p.stderr
+    assert len(lines) == 1 and lines[0].startswith(f"{script}: error: {option}: "), lines
+    assert f"({field}) -- fix: " in lines[0] and "--set" not in lines[0], lines
+    assert not out.exists()
+
+
+def test_carrier_phase_keep_above_the_satellites_in_view_names_keep(tmp_path):
+    """--keep 40 leaves no satellite to remove: known after the degraded part's probe run (the
+    sky), refused there in one line naming --keep (it was a satellites_lost fault without PRNs,
+    blamed on faults.0.prns and the command line's --set)."""
+    import subprocess
+    import sys
+
+    p = subprocess.run([sys.executable, str(EXP / "carrier_phase.py"), "--out", str(tmp_path / "out"), "--quick",
+                        "--parts", "degraded", "--keep", "40"], capture_output=True, text=True, timeout=300)
+    lines = [ln for ln in p.stderr.splitlines() if ln.strip()]
+    assert p.returncode == 2 and len(lines) == 1 and "Traceback" not in p.stderr, p.stderr
+    assert lines[0].startswith("carrier_phase.py: error: --keep: ") and " -- fix: " in lines[0], lines

@@ -459,3 +459,40 @@ def test_bad_configuration_is_a_user_error():
     for bad in (-1.0, float("nan"), "41", None, True):
         with pytest.raises(UserError, match="gnss_cn0_mask_dbhz"):
             FilterConfig(gnss_cn0_mask_dbhz=bad)
+
+
+def test_every_filter_sigma_must_give_a_positive_normal_variance():
+    """The filter's own configuration objects apply the scenario's rule (v2v.errors.sigma_problem)
+    to every sigma they square into a variance, in radians where that is their unit: sigma in
+    [2^-511, sqrt(float max / 2)] (0 also where it turns a term off), tau finite and normal.
+    The largest and smallest accepted sigma and the floats just outside them."""
+    import math
+
+    from v2v.errors import SIGMA_MAX, SIGMA_MIN
+    from v2v.estimation.phase import PhaseConfig
+
+    makers = {"noise": MeasurementNoiseConfig, "process": ProcessNoiseConfig, "filter": FilterConfig,
+              "phase": PhaseConfig}
+    sigmas = {"noise": ["pseudorange_sigma_m", "doppler_sigma_mps", "uwb_sigma_m", "bearing_sigma_rad"],
+              "process": ["vel_sigma_horizontal_mps", "vel_sigma_vertical_mps", "drift_sigma_mps",
+                          "azimuth_rw_rad_per_sqrt_s", "yaw_rate_sigma_rps", "uwb_bias_rw_m_per_sqrt_s",
+                          "uwb_scale_rw_per_sqrt_s"],
+              "filter": ["uwb_bias_sigma0_m", "uwb_scale_sigma0", "azimuth_sigma0_rad", "clock_reset_sigma_m",
+                         "height_aiding_sigma_m"],
+              "phase": ["phase_sigma_m", "fix_hold_sigma_cycles"]}
+    off = {"azimuth_rw_rad_per_sqrt_s", "yaw_rate_sigma_rps", "uwb_bias_rw_m_per_sqrt_s", "uwb_scale_rw_per_sqrt_s"}
+    for prefix, names in sigmas.items():
+        for name in names:
+            make = makers[prefix]
+            for good in (SIGMA_MIN, SIGMA_MAX, 1.0) + ((0.0,) if name in off else ()):
+                assert getattr(make(**{name: good}), name) == good
+            for bad in (math.nextafter(SIGMA_MIN, 0.0), math.nextafter(SIGMA_MAX, math.inf), 1e-300, 1e200,
+                        math.inf, math.nan, -1.0) + (() if name in off else (0.0,)):
+                with pytest.raises(UserError) as e:
+                    make(**{name: bad})
+                assert e.value.field == f"{prefix}.{name}" and "\n" not in e.value.one_line(), e.value.one_line()
+    for name in ("vel_tau_s", "drift_tau_s", "yaw_rate_tau_s"):
+        assert getattr(ProcessNoiseConfig(**{name: 2.2250738585072014e-308}), name) > 0.0
+        for bad in (math.inf, math.nan, 0.0, 1e-310):
+            with pytest.raises(UserError, match=f"process.{name}"):
+                ProcessNoiseConfig(**{name: bad})

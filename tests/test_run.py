@@ -476,7 +476,9 @@ def test_uwb_constraints_from_the_scenario(tmp_path):
 
 def test_gnss_min_satellites_leaves_weak_gnss_out(tmp_path):
     """``gnss_min_satellites``: a vehicle with fewer satellites in common with the lead leaves
-    its GNSS out of the epoch, as in an outage. With the threshold above any sky (40) every
+    its GNSS out of the epoch, as in an outage. With the threshold at the whole nominal
+    constellation (27, which no place sees at once; the largest value the scenario accepts with
+    that sky) every
     follower is initialized from its first epochs (initialization is not affected) and then
     uses no pseudorange, counted per vehicle-epoch, while height aiding bounds its vertical
     (sigma_up <= 1 m + 1 m/s x 0.1 s, the outage test's bound) and UWB and bearings carry the
@@ -484,7 +486,7 @@ def test_gnss_min_satellites_leaves_weak_gnss_out(tmp_path):
     sc = load_scenario(None, [
         'network.name="open_highway"', "clusters.0.vehicles=3", "duration_s=8.0",
         'solutions=[{name="all", sensors=["gnss","uwb","bearing"]},'
-        ' {name="none", sensors=["gnss","uwb","bearing"], gnss_min_satellites=40}]',
+        ' {name="none", sensors=["gnss","uwb","bearing"], gnss_min_satellites=27}]',
     ])
     res = run_scenario(sc, tmp_path / "r", quiet=True, replay=False)
     ep = pd.read_parquet(tmp_path / "r" / "epochs.parquet")

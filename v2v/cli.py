@@ -93,10 +93,18 @@ def _load(args) -> object:
     return load_scenario(getattr(args, "scenario", None), overrides)
 
 
+def _warn(scenario) -> None:
+    """The scenario's warnings (a sensor too slow for the run: Scenario.sparse_sensor_warnings),
+    one line each on stderr, also with --quiet: they say what the results will rest on."""
+    for line in scenario.sparse_sensor_warnings():
+        print(f"v2v: warning: {line}", file=sys.stderr, flush=True)
+
+
 def _cmd_run(args, demo: bool = False) -> int:
     from v2v.run import run_scenario
 
     scenario = _load(args)
+    _warn(scenario)
     out = args.out or Path("runs") / scenario.name  # type: ignore[attr-defined]
     base = Path(args.scenario).resolve().parent if getattr(args, "scenario", None) else None
     result = run_scenario(
@@ -254,6 +262,7 @@ def _cmd_scenario(args) -> int:
 
     sc = load_scenario(args.file, args.overrides)
     check_scenario(sc, Path(args.file).resolve().parent)
+    _warn(sc)
     print(sc.to_toml())
     print(f"# {args.file}: OK", file=sys.stderr)
     return 0

@@ -38,6 +38,7 @@ from typing import Annotated, Literal
 import numpy as np
 from pydantic import BaseModel, ConfigDict, Field, StrictFloat, StrictInt, model_validator
 
+from v2v.config.sections import GPS_MAX_PRN
 from v2v.sensors.measurements import GPS_L1_WAVELENGTH_M, SPEED_OF_LIGHT_MPS, Bearings, GnssEpoch, UwbRanges
 
 FaultKind = Literal[
@@ -57,7 +58,7 @@ _KIND_FIELDS: dict[str, tuple[str, ...]] = {
 }
 _OPTIONAL_DEFAULTS: dict[str, object] = {"prns": [], "size_m": 0.0, "size_cycles": 0, "scale_ppm": 0.0,
                                          "probability": 1.0, "sensor": "gnss"}
-MAX_PRN = 32  # GPS PRNs (the nominal constellation's slots are 1-27; a RINEX file's GPS PRNs 1-32)
+MAX_PRN = GPS_MAX_PRN  # GPS PRNs (the nominal constellation's slots are 1-27; a RINEX file's GPS PRNs 1-32)
 MAX_SIZE_CYCLES = 10**9  # (carrier_cycles is float64, ambiguity_cycles int64: beyond, a slip overflows or loses cycles)
 
 

@@ -14,6 +14,7 @@ from __future__ import annotations
 
 import difflib
 import itertools
+import math
 import re
 import tomllib
 from datetime import UTC, datetime
@@ -32,7 +33,14 @@ from pydantic import (
     model_validator,
 )
 
-from v2v.config.sections import ExchangeSection, SensorsSection, SolutionSection, a_path, paper_solutions
+from v2v.config.sections import (
+    NOMINAL_SATELLITES,
+    ExchangeSection,
+    SensorsSection,
+    SolutionSection,
+    a_path,
+    paper_solutions,
+)
 from v2v.errors import UserError, not_a_file
 from v2v.faults import FaultSection
 
@@ -232,6 +240,11 @@ class Scenario(_Model):
             dup = sorted({n for n in sol_names if sol_names.count(n) > 1})
             raise ValueError(f"@solutions: solution name(s) {dup} appear more than once -- fix: give each solution its own name")
         for si, s in enumerate(self.solutions):
+            if self.sensors.gnss.ephemeris == "nominal" and s.gnss_min_satellites > NOMINAL_SATELLITES:
+                raise ValueError(
+                    f"@solutions.{si}.gnss_min_satellites: {s.gnss_min_satellites} satellites in common can never be met:"
+                    f" the nominal sky (sensors.gnss.ephemeris) has {NOMINAL_SATELLITES}, so every epoch's GNSS would be"
+                    f" left out -- fix: give 0 .. {NOMINAL_SATELLITES} (0: every SD is used), or a RINEX ephemeris")
             for sensor in s.sensors:
                 if not getattr(self.sensors, sensor).enabled:
                     raise ValueError(
@@ -270,6 +283,26 @@ class Scenario(_Model):
             if kind[a] != kind[b]:
                 raise ValueError(f"@sensors.uwb.pairs: vehicles {a!r} ({kind[a]}) and {b!r} ({kind[b]}) carry radios of "
                                  "different types -- fix: range only between radios of one type (list the pairs explicitly)")
+
+    def sparse_sensor_warnings(self) -> list[str]:
+        """One line per sensor so slow that the run has fewer than 2 of its epochs (its period
+        exceeds duration_s): the GNSS (whose epochs are the output epochs: every statistic then
+        rests on one epoch, and a std on none) and a bearing sensor a solution uses. Not an error:
+        a user may want it; the command line prints them as the run starts."""
+        out = []
+        sensors = [("gnss", "GNSS epoch", "its statistics rest on {n} epoch (a std on none)")]
+        if any("bearing" in s.sensors for s in self.solutions):
+            sensors.append(("bearing", "bearing epoch", "the solutions with bearings get them at {n} epoch"))
+        for name, what, result in sensors:
+            rate = getattr(self.sensors, name).rate_hz
+            # epochs at k / rate_hz from t_s = 0 to duration_s (both ends are SUMO steps)
+            n = math.floor(self.duration_s * rate + 1e-6) + 1
+            if n < 2:
+                out.append(f"sensors.{name}.rate_hz: one {what} every {1.0 / rate:g} s ({rate:g} Hz) in a "
+                           f"{self.duration_s:g} s run (duration_s): {result.format(n=n)} -- fix: raise sensors.{name}."
+                           f"rate_hz to 1 / duration_s or more (e.g. the default 10 Hz), or duration_s to "
+                           f"{1.0 / rate:g} s or more")
+        return out
 
     def vehicle_ids(self) -> list[str]:
         """Cluster vehicle ids, ``<cluster>.<index>`` in departure order."""
@@ -383,7 +416,7 @@ def _format_validation_error(err: ValidationError, data: dict[str, Any], source:
         loc = f"{loc}.{own}" if loc else own
     got = e.get("input")
     got_s = f" (got {got!r})" if not isinstance(got, dict | list) and got is not None and _quotes_not(msg, got) else ""
-    return UserError(f"{msg}{got_s} in {source}", field=loc or "scenario", fix=fix)
+    return UserError(f"{msg}{got_s}", field=loc or "scenario", fix=fix, where=source)
 
 
 # pydantic's tag of a union's member in an error's loc: ("faults", 0, "vehicles", "literal['all']")

@@ -6,6 +6,7 @@ in :mod:`v2v.pipeline` turn them into the sensor and filter parameter objects.
 
 from __future__ import annotations
 
+import math
 from typing import Any, Literal
 
 from pydantic import (
@@ -15,9 +16,19 @@ from pydantic import (
     StrictBool,
     StrictFloat,
     StrictInt,
+    ValidationInfo,
     field_validator,
     model_validator,
 )
+
+from v2v.errors import sigma_problem, sigma_range, tau_problem
+
+# v2v tracks GPS L1 C/A only, whose PRNs are 1-32 (IS-GPS-200 Table 3-Ia): no sky, a RINEX file's
+# or the nominal one, has more GPS satellites, let alone more in common with the lead.
+GPS_MAX_PRN = 32
+# the built-in nominal sky (sensors.gnss.ephemeris = "nominal"): the 27 slots of
+# v2v.sensors.gnss.constellation's expandable-24 constellation (a test ties the two)
+NOMINAL_SATELLITES = 27
 
 
 def a_path(v: str, fix: str = "give the file's path") -> str:
@@ -142,6 +153,18 @@ class ExchangeSection(_Model):
         return self.latency_s if self.filter_lag_s is None else self.filter_lag_s
 
 
+# The solution fields the filter squares into variances: field -> (factor to the filter's unit, unit).
+# Each must give a positive normal float64 variance (v2v.errors.sigma_problem); those in _ZERO_IS_OFF
+# may also be 0 (the term is off).
+_DEG = math.pi / 180.0  # (= numpy.radians' factor, which the pipeline converts with)
+_FILTER_SIGMAS = {"pseudorange_sigma_m": (1.0, "m"), "doppler_sigma_mps": (1.0, "m/s"), "uwb_sigma_m": (1.0, "m"),
+                  "bearing_sigma_deg": (_DEG, "deg"), "velocity_sigma_horizontal_mps": (1.0, "m/s"),
+                  "velocity_sigma_vertical_mps": (1.0, "m/s"), "clock_drift_sigma_mps": (1.0, "m/s"),
+                  "height_aiding_sigma_m": (1.0, "m"), "azimuth_rw_deg_per_sqrt_s": (_DEG, "deg/sqrt(s)"),
+                  "yaw_rate_sigma_deg_s": (_DEG, "deg/s"), "phase_sigma_m": (1.0, "m")}
+_ZERO_IS_OFF = ("azimuth_rw_deg_per_sqrt_s", "yaw_rate_sigma_deg_s")
+
+
 class SolutionSection(_Model):
     """One filter configuration. Every solution processes the same measurements.
 
@@ -181,7 +204,9 @@ class SolutionSection(_Model):
     # A vehicle with fewer satellites in common with the lead than this leaves its GNSS out of
     # the epoch (as in an outage: height aiding, UWB and bearings carry it). 0: use every SD
     # (the paper's filter). 4 in a deep canyon: see the README's carrier-phase section.
-    gnss_min_satellites: StrictInt = Field(default=0, ge=0)
+    # At most GPS_MAX_PRN (32): a larger count can never be met and would leave every epoch's GNSS
+    # out (with the nominal sky at most its 27: Scenario checks that, as it knows the sky).
+    gnss_min_satellites: StrictInt = 0
     # SNR mask of the SD pseudoranges and Dopplers: only signals with C/N0 >= this (dB-Hz) at
     # both receivers. Echoes arrive echo_loss_db (8 dB) weaker than their direct signal, so 41
     # (zenith 49 - 8) leaves none. 0: no mask (the paper's filter). See FilterConfig.
@@ -202,6 +227,38 @@ class SolutionSection(_Model):
     ambiguity_resolution: StrictBool = True
     ar_min_success: StrictFloat = Field(default=0.999, gt=0.0, lt=1.0)
     ar_ratio: StrictFloat = Field(default=3.0, ge=1.0)
+
+    @field_validator(*_FILTER_SIGMAS)
+    @classmethod
+    def _usable_sigma(cls, v: float, info: ValidationInfo) -> float:
+        name = str(info.field_name)
+        to_filter, unit = _FILTER_SIGMAS[name]
+        off = name in _ZERO_IS_OFF
+        why = sigma_problem(v, to_filter=to_filter, zero_is_off=off)
+        if why:
+            raise ValueError(f"{why} -- fix: give {name} in {sigma_range(to_filter=to_filter)} {unit}"
+                             + (", or 0 (off)" if off else ""))
+        return v
+
+    @field_validator("velocity_tau_s", "clock_drift_tau_s", "yaw_rate_tau_s")
+    @classmethod
+    def _usable_tau(cls, v: float, info: ValidationInfo) -> float:
+        why = tau_problem(v)
+        if why:
+            raise ValueError(f"{why} -- fix: give {info.field_name} as a positive number of seconds, e.g. "
+                             f"{cls.model_fields[str(info.field_name)].default}")
+        return v
+
+    @field_validator("gnss_min_satellites")
+    @classmethod
+    def _satellites_that_can_be_met(cls, v: int) -> int:
+        fix = f"give 0 .. {GPS_MAX_PRN} (0: every SD is used; e.g. 4 in a deep canyon)"
+        if v < 0:
+            raise ValueError(f"is a number of satellites, not {v} -- fix: {fix}")
+        if v > GPS_MAX_PRN:
+            raise ValueError(f"{v} satellites in common can never be met: GPS has PRNs 1-{GPS_MAX_PRN} (the nominal sky"
+                             f" {NOMINAL_SATELLITES}), so every epoch's GNSS would be left out -- fix: {fix}")
+        return v
 
     @model_validator(mode="before")
     @classmethod

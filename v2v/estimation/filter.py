@@ -106,7 +106,7 @@ import numpy as np
 from numpy.typing import NDArray
 from scipy import special
 
-from v2v.errors import UserError
+from v2v.errors import UserError, check_sigmas
 from v2v.estimation import kernels, models
 from v2v.estimation.layout import AMBIGUITY, AZIMUTH, AZIMUTH_RATE, UWB, VEHICLE, StateLayout, uwb_pair_key
 from v2v.estimation.models import GnssGeometry, Row
@@ -158,9 +158,7 @@ class MeasurementNoiseConfig:
     bearing_sigma_rad: float = float(np.radians(0.5))
 
     def __post_init__(self) -> None:
-        for name in ("pseudorange_sigma_m", "doppler_sigma_mps", "uwb_sigma_m", "bearing_sigma_rad"):
-            if not getattr(self, name) > 0.0:
-                raise UserError(f"must be > 0, got {getattr(self, name)!r}", field=f"noise.{name}")
+        check_sigmas(self, "noise", ("pseudorange_sigma_m", "doppler_sigma_mps", "uwb_sigma_m", "bearing_sigma_rad"))
 
     @property
     def sd_pseudorange_var_m2(self) -> float:
@@ -253,6 +251,8 @@ class FilterConfig:
         if not 0.0 < self.significance < 1.0:
             raise UserError(f"must be in (0, 1), got {self.significance!r}", field="filter.significance",
                             fix="e.g. 0.001 for a 3.29-sigma innovation test")
+        check_sigmas(self, "filter", ("uwb_bias_sigma0_m", "uwb_scale_sigma0", "azimuth_sigma0_rad", "clock_reset_sigma_m")
+                     + (("height_aiding_sigma_m",) if self.height_aiding_sigma_m is not None else ()))
         if self.init_min_satellites < 4:
             raise UserError("needs >= 4 satellites (3 position + clock)", field="filter.init_min_satellites")
         for name in ("uwb_bias_bounds_m", "uwb_scale_bounds"):

@@ -55,6 +55,7 @@ from dataclasses import dataclass, field
 import numpy as np
 from numpy.typing import NDArray
 
+from v2v.errors import check_sigmas
 from v2v.estimation.ambiguity import bootstrapped_success_rate, partial_fix, reference_satellite, sd_to_dd
 from v2v.estimation.layout import AMBIGUITY, StateLayout
 from v2v.estimation.models import GnssGeometry, Row
@@ -108,6 +109,9 @@ class PhaseConfig:
     ar_min_lock_s: float = 5.0
     ar_min_dd: int = 4
     reset_after_rejections: int = 3
+
+    def __post_init__(self) -> None:
+        check_sigmas(self, "phase", ("phase_sigma_m", "fix_hold_sigma_cycles"))
 
     @property
     def sd_phase_var_m2(self) -> float:

@@ -75,7 +75,7 @@ from functools import lru_cache
 import numpy as np
 from numpy.typing import NDArray
 
-from v2v.errors import UserError
+from v2v.errors import UserError, check_sigmas, tau_problem
 from v2v.estimation.layout import AZIMUTH, UWB, VEHICLE, StateLayout
 
 F64 = NDArray[np.float64]
@@ -118,15 +118,17 @@ class ProcessNoiseConfig:
 
     def __post_init__(self) -> None:
         for name in ("vel_tau_s", "drift_tau_s", "yaw_rate_tau_s"):
-            if not getattr(self, name) > 0.0:
-                raise UserError(f"must be > 0, got {getattr(self, name)!r}", field=f"process.{name}",
+            why = tau_problem(getattr(self, name))
+            if why:
+                raise UserError(f"{getattr(self, name)!r} {why}", field=f"process.{name}",
                                 fix="give a positive correlation time in seconds")
-        for name in ("vel_sigma_horizontal_mps", "vel_sigma_vertical_mps", "drift_sigma_mps",
-                     "clock_bias_psd_m2ps", "azimuth_rw_rad_per_sqrt_s", "yaw_rate_sigma_rps",
-                     "uwb_bias_rw_m_per_sqrt_s",
-                     "uwb_scale_rw_per_sqrt_s"):
-            if not getattr(self, name) >= 0.0:
-                raise UserError(f"must be >= 0, got {getattr(self, name)!r}", field=f"process.{name}")
+        check_sigmas(self, "process", ("vel_sigma_horizontal_mps", "vel_sigma_vertical_mps", "drift_sigma_mps"))
+        # random-walk strengths and the yaw-rate sigma: 0 turns the term off
+        check_sigmas(self, "process", ("azimuth_rw_rad_per_sqrt_s", "yaw_rate_sigma_rps", "uwb_bias_rw_m_per_sqrt_s",
+                                       "uwb_scale_rw_per_sqrt_s"), zero_is_off=True)
+        psd = self.clock_bias_psd_m2ps  # (a variance per second already, not a sigma)
+        if not (math.isfinite(psd) and psd >= 0.0):
+            raise UserError(f"must be a finite number >= 0, got {psd!r}", field="process.clock_bias_psd_m2ps")
 
 
 def van_loan(a: F64, gqg: F64, dt_s: float) -> tuple[F64, F64]:
