@@ -220,9 +220,13 @@ def compare_run(a: Path, b: Path) -> list[str]:
         fa, fb = pd.read_parquet(a / f), pd.read_parquet(b / f)
         if not _frames_identical(fa, fb):
             same = list(fa.columns) == list(fb.columns) and len(fa) == len(fb)
-            worst = max((relative_difference(fa[c].to_numpy(), fb[c].to_numpy()) for c in fa.columns)
-                        if same else [math.inf])
-            diffs.append(f"{f} ({_rel(worst)})")
+            if not same:
+                diffs.append(f"{f} (other columns or rows)")
+                continue
+            # the columns that differ, each with its largest relative difference
+            cols = {c: relative_difference(fa[c].to_numpy(), fb[c].to_numpy()) for c in fa.columns
+                    if not _frames_identical(fa[[c]], fb[[c]])}
+            diffs.append(f"{f}: " + ", ".join(f"{c} ({_rel(v)})" for c, v in cols.items()))
     sa, sb = (json.loads((d / "summary.json").read_text()) for d in (a, b))
     for s in (sa, sb):
         for k in ("wall_s", "real_time_factor", "timing_s"):
