@@ -22,13 +22,14 @@ from pydantic import (
 )
 
 from v2v.errors import sigma_problem, sigma_range, tau_problem
+from v2v.sensors.gnss.constellation import SLOT_TABLES
 
 # v2v tracks GPS L1 C/A only, whose PRNs are 1-32 (IS-GPS-200 Table 3-Ia): no sky, a RINEX file's
 # or the nominal one, has more GPS satellites, let alone more in common with the lead.
 GPS_MAX_PRN = 32
-# the built-in nominal sky (sensors.gnss.ephemeris = "nominal"): the 27 slots of
-# v2v.sensors.gnss.constellation's expandable-24 constellation (a test ties the two)
-NOMINAL_SATELLITES = 27
+# the built-in nominal sky (sensors.gnss.ephemeris = "nominal"): the slots of the table a run's
+# NominalConstellation uses (its default, the expandable-24 constellation's 27)
+NOMINAL_SATELLITES = len(SLOT_TABLES["expandable27"])
 
 
 def a_path(v: str, fix: str = "give the file's path") -> str:
