@@ -3,6 +3,7 @@ and never a run folder left behind that looks complete."""
 
 from __future__ import annotations
 
+import json
 import os
 import shlex
 import shutil
@@ -295,6 +296,9 @@ def test_run_and_check_print_the_warning_as_they_start_also_quiet(tmp_path):
     lines = [ln for ln in p.stderr.splitlines() if ln.strip()]
     assert p.returncode == 0 and lines and lines[0].startswith("v2v: warning: sensors.gnss.rate_hz: "), p.stderr
     assert "rest on 1 epoch" in lines[0] and (tmp_path / "r" / "summary.json").is_file()
+    # the run's note says it too (a sweep's runs.parquet and report list the runs with a note)
+    note = json.loads((tmp_path / "r" / "summary.json").read_text())["note"]
+    assert note.startswith(lines[0].removeprefix("v2v: warning: ")), note
     sc = tmp_path / "s.toml"
     sc.write_text("name = 's'\n")
     p = _v2v("scenario", "check", str(sc), *ov, cwd=tmp_path)

@@ -105,6 +105,41 @@ def test_bad_study_fails_up_front_naming_the_field(tmp_path, text, field):
     assert not (tmp_path / "out").exists(), "nothing may start (or be written) before the whole study validates"
 
 
+def test_a_sensor_too_slow_for_a_run_is_one_warning_naming_its_grid_points(tmp_path, monkeypatch, capsys):
+    """`Scenario.sparse_sensor_warnings` for a study: a 2 s run at 0.4 Hz GNSS has one GNSS
+    epoch (t_s = 0; the next is at 2.5 s), at 10 Hz 21. The line is given once, naming the grid
+    points it holds for unless it holds for all of them, and `v2v sweep` prints it on stderr
+    before any run (also with --quiet), as `v2v run` does; the study still runs (exit 0)."""
+    import v2v.sweep as sweep_mod
+
+    study = tmp_path / "study.toml"
+    study.write_text('seeds = [1, 2]\n[set]\nduration_s = 2.0\nsolutions = [{name = "GPS", sensors = ["gnss"]}]\n'
+                     '[grid]\n"sensors.gnss.rate_hz" = [10.0, 0.4]\n"clusters.0.vehicles" = [2, 3]\n')
+    (w,) = load_study(study).warnings
+    assert w.startswith("sensors.gnss.rate_hz: ") and "rest on 1 epoch" in w, w
+    assert w.endswith("(grid: sensors.gnss.rate_hz=0.4, clusters.0.vehicles=2; "
+                      "sensors.gnss.rate_hz=0.4, clusters.0.vehicles=3)"), w
+    study.write_text('[set]\nduration_s = 2.0\n"sensors.gnss.rate_hz" = 0.4\n[grid]\n"clusters.0.vehicles" = [2, 3]\n')
+    (w_all,) = load_study(study).warnings
+    assert w_all.startswith("sensors.gnss.rate_hz: ") and "(grid:" not in w_all, w_all
+    study.write_text('[set]\nduration_s = 2.0\n')
+    assert load_study(study).warnings == ()
+
+    calls = []
+
+    def fake_run_study(st, out, **kw):  # (the runs are not what this test is about)
+        calls.append(st)
+        return sweep_mod.SweepResult(out_dir=Path(out), total=0, executed=0, skipped=0, failed=0, wall_s=0.0,
+                                     table=None)
+
+    monkeypatch.setattr(sweep_mod, "run_study", fake_run_study)
+    study.write_text('[set]\nduration_s = 2.0\n"sensors.gnss.rate_hz" = 0.4\n')
+    assert _cli(["sweep", str(study), "--out", str(tmp_path / "out"), "--quiet"]) == 0
+    err = [ln for ln in capsys.readouterr().err.splitlines() if ln.strip()]
+    assert err == [f"v2v: warning: {w_all}"], err
+    assert len(calls) == 1 and calls[0].warnings == (w_all,)  # the study loaded once, handed on
+
+
 def test_nested_grid_tables_equal_dotted_keys_and_ids_are_stable(tmp_path):
     a, b = tmp_path / "a.toml", tmp_path / "b.toml"
     a.write_text('seeds = [4, 5]\n[grid]\n"clusters.0.vehicles" = [2, 4]\n')

@@ -710,14 +710,16 @@ def _run_scenario(scenario: Scenario, out_dir: Path, *, quiet: bool, replay: boo
 def _run_note(scenario: Scenario, t_end: float, fault_log: Any, sol_stats: dict[str, Any], gnss: dict[str, Any],
               exchange: dict[str, int], uwb: dict[str, Any], bearing: dict[str, Any]) -> str:
     """summary.json's ``note`` ("" if none), what a user should know about a run that completed:
-    it ended early (every cluster vehicle at the end of its route), a fault could not act (it
+    a sensor so slow that the run has fewer than 2 of its epochs
+    (:meth:`Scenario.sparse_sensor_warnings`, also printed as the run starts), it ended early
+    (every cluster vehicle at the end of its route), a fault could not act (it
     starts after the run's end, or changed no measurement), no solution estimated any vehicle
     (:func:`_why_nothing_estimated`), a solution's UWB or bearing sensor measured nothing, a
     vehicle's filter was badly overconfident (:func:`_overconfident`), most V2V messages arrived
     after the filter had passed their time tag."""
     from v2v.faults import unreachable_faults
 
-    notes = []
+    notes = list(scenario.sparse_sensor_warnings())
     if t_end + 1e-9 < scenario.duration_s - scenario.step_length_s:
         notes.append(f"all cluster vehicles reached the end of the route at t = {t_end:.1f} s")
     never = unreachable_faults(list(scenario.faults), scenario.duration_s)

@@ -104,6 +104,9 @@ class Study:
     replay: bool = False
     save_measurements: bool = False
     runs: tuple[RunSpec, ...] = field(default=())
+    # Scenario.sparse_sensor_warnings of the grid combinations, each line once (with the
+    # combinations it holds for when not all of them): printed as the sweep starts
+    warnings: tuple[str, ...] = field(default=())
 
     @property
     def grid_columns(self) -> list[str]:
@@ -278,7 +281,10 @@ def load_study(path: str | Path) -> Study:
     runs: list[RunSpec] = []
     seen: dict[str, str] = {}
     checked: set[str] = set()
+    warned: dict[str, list[str]] = {}  # warning line -> the combinations it holds for
+    n_combos = 0
     for combo in itertools.product(*(range(len(grid[k])) for k in keys)):
+        n_combos += 1
         labels = {k: labels_by_key[k][i] for k, i in zip(keys, combo, strict=True)}
         grid_ov = [f"{k}={toml_inline(grid[k][i])}" for k, i in zip(keys, combo, strict=True)]
         desc = ", ".join(f"{k}={v}" for k, v in labels.items()) or "the base scenario"
@@ -292,6 +298,8 @@ def load_study(path: str | Path) -> Study:
                 checked.add(key)
         except UserError as exc:
             raise UserError(f"{exc.message} (study {p.name}, run {desc})", field=exc.field, fix=exc.fix) from None
+        for line in first.sparse_sensor_warnings():
+            warned.setdefault(line, []).append(desc)
         readable = "_".join(_slug(v) for v in labels.values()) or "run"
         params = {k: toml_inline(grid[k][i]) for k, i in zip(keys, combo, strict=True)}
         for seed in seeds:  # the seed changes nothing else, and was range-checked above
@@ -303,7 +311,9 @@ def load_study(path: str | Path) -> Study:
                                 fix="remove the duplicate grid value")
             seen[resolved] = desc
             runs.append(RunSpec(run_id=f"{readable}-s{seed}-{digest}", labels=labels, seed=seed, scenario=sc))
-    return dataclasses.replace(study, runs=tuple(runs))
+    warnings = tuple(line if len(descs) == n_combos else f"{line} (grid: {'; '.join(descs)})"
+                     for line, descs in warned.items())
+    return dataclasses.replace(study, runs=tuple(runs), warnings=warnings)
 
 
 def _run_digest(base_digest: str, fixed: dict[str, Any], params: dict[str, str], seed: int) -> str:
@@ -1357,7 +1367,10 @@ def cmd_sweep(args) -> int:
         print(f"report: {rep.markdown}, {rep.csv}, {rep.figure}")
         return 0
     out = args.out or Path("sweeps") / Path(args.study).stem
-    res = run_study(args.study, out, scheduler=args.scheduler, workers=args.workers, host=args.host, quiet=args.quiet)
+    study = load_study(args.study)
+    for line in study.warnings:  # (also with --quiet, as `v2v run`: they say what the results rest on)
+        print(f"v2v: warning: {line}", file=sys.stderr, flush=True)
+    res = run_study(study, out, scheduler=args.scheduler, workers=args.workers, host=args.host, quiet=args.quiet)
     if not args.quiet:
         print(f"{res.total} runs: {res.executed} executed ({res.failed} failed), {res.skipped} already complete; "
               f"wall {res.wall_s:.1f} s; table {res.out_dir / RUNS_FILE}")
