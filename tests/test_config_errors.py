@@ -5,6 +5,7 @@ with --set, and a fix that says what is allowed. Never a silent coercion or a si
 from __future__ import annotations
 
 import math
+import shutil
 import subprocess
 import sys
 from pathlib import Path
@@ -13,6 +14,8 @@ import pytest
 
 from v2v.config.scenario import load_scenario
 from v2v.errors import UserError
+
+REPO = Path(__file__).resolve().parents[1]
 
 SCENARIOS = Path(__file__).resolve().parents[1] / "scenarios"
 
@@ -282,6 +285,25 @@ def test_gnss_min_satellites_is_at_most_what_a_sky_can_hold():
     err = _error(sol.format(-1))
     _one_line_naming(err, "gnss_min_satellites")
     assert err.fix.startswith("give 0 .. 32"), err.one_line()
+
+
+def test_gnss_min_satellites_is_at_most_what_the_rinex_sky_holds(tmp_path):
+    """With a RINEX sky the bound is the file's satellites, known once the file is read: the
+    repository's excerpt of brdc1180.21n holds PRNs 1, 8 and 14, so 3 is accepted and 4 is
+    refused by `v2v scenario check`'s check and by the run, before a run folder is written."""
+    from v2v.run import check_scenario, run_scenario
+
+    shutil.copy(REPO / "tests" / "data" / "gnss_2021-04-28" / "brdc1180.21n.excerpt", tmp_path / "brdc.21n")
+    base = [f'sensors.gnss.ephemeris="{tmp_path / "brdc.21n"}"', "start_utc=2021-04-28T19:00:00Z", "duration_s=2.0"]
+    sol = 'solutions=[{{name="s", sensors=["gnss"], gnss_min_satellites={}}}]'
+    check_scenario(load_scenario(None, [*base, sol.format(3)]))
+    bad = load_scenario(None, [*base, sol.format(4)])
+    for check in (lambda: check_scenario(bad), lambda: run_scenario(bad, tmp_path / "r", quiet=True, replay=False)):
+        with pytest.raises(UserError) as ei:
+            check()
+        _one_line_naming(ei.value, "gnss_min_satellites")
+        assert "has 3" in ei.value.message and ei.value.fix.startswith("give 0 .. 3"), ei.value.one_line()
+    assert not (tmp_path / "r").exists()
 
 
 def test_the_nominal_sky_has_the_satellites_the_bound_says():

@@ -278,10 +278,25 @@ def check_scenario(scenario: Scenario, base_dir: Path | None = None) -> None:
     if net.poly_paths:
         load_polygons(list(net.poly_paths))
     eph = ephemeris_source(scenario.sensors.gnss.ephemeris, float(utc_to_gps_s(scenario.start_utc)), scenario.duration_s)
+    check_min_satellites(scenario, eph.prns())
     if scenario.faults:
         from v2v.faults import check_fault_prns
 
         check_fault_prns(list(scenario.faults), eph.prns())
+
+
+def check_min_satellites(scenario: Scenario, sky_prns) -> None:
+    """UserError naming ``solutions.<i>.gnss_min_satellites`` when it exceeds the satellites
+    of the run's sky (``sky_prns``: the ephemeris' PRNs, e.g. a RINEX file's): no epoch could
+    then have that many in common with the lead, and the solution would use no GNSS at all.
+    (The schema checks the nominal sky's 27; this is the same bound for a RINEX file.)"""
+    n = len({int(p) for p in sky_prns})
+    for i, sol in enumerate(scenario.solutions):
+        if sol.gnss_min_satellites > n:
+            raise UserError(f"{sol.gnss_min_satellites} satellites in common can never be met: the run's sky "
+                            f"(sensors.gnss.ephemeris) has {n}, so every epoch's GNSS would be left out",
+                            field=f"solutions.{i}.gnss_min_satellites",
+                            fix=f"give 0 .. {n} (0: every SD is used)")
 
 
 def run_scenario(
@@ -430,6 +445,7 @@ def _run_scenario(scenario: Scenario, out_dir: Path, *, quiet: bool, replay: boo
 
             # sensors -------------------------------------------------------------------
             gnss = build_gnss(scenario, gps_start, seeds[STREAM_GNSS], occlusion, net.georef)
+            check_min_satellites(scenario, gnss.eph.prns())
             if scenario.faults:
                 check_fault_prns(list(scenario.faults), gnss.eph.prns())
             uwb_net = build_uwb(scenario, vehicles, seeds[STREAM_UWB]) if "uwb" in used else None
