@@ -17,7 +17,7 @@ from v2v.errors import UserError
 
 REPO = Path(__file__).resolve().parents[1]
 
-SCENARIOS = Path(__file__).resolve().parents[1] / "scenarios"
+SCENARIOS = REPO / "scenarios"
 
 
 def _error(*overrides: str) -> UserError:

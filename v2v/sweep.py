@@ -282,9 +282,7 @@ def load_study(path: str | Path) -> Study:
     seen: dict[str, str] = {}
     checked: set[str] = set()
     warned: dict[str, list[str]] = {}  # warning line -> the combinations it holds for
-    n_combos = 0
     for combo in itertools.product(*(range(len(grid[k])) for k in keys)):
-        n_combos += 1
         labels = {k: labels_by_key[k][i] for k, i in zip(keys, combo, strict=True)}
         grid_ov = [f"{k}={toml_inline(grid[k][i])}" for k, i in zip(keys, combo, strict=True)]
         desc = ", ".join(f"{k}={v}" for k, v in labels.items()) or "the base scenario"
@@ -311,6 +309,7 @@ def load_study(path: str | Path) -> Study:
                                 fix="remove the duplicate grid value")
             seen[resolved] = desc
             runs.append(RunSpec(run_id=f"{readable}-s{seed}-{digest}", labels=labels, seed=seed, scenario=sc))
+    n_combos = math.prod(len(grid[k]) for k in keys)
     warnings = tuple(line if len(descs) == n_combos else f"{line} (grid: {'; '.join(descs)})"
                      for line, descs in warned.items())
     return dataclasses.replace(study, runs=tuple(runs), warnings=warnings)
