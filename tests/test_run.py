@@ -589,6 +589,24 @@ def test_an_overconfident_filter_is_noted(tmp_path):
     assert note.index(f"GPS {worst} (") < min(note.index(f"GPS {v} (") for v in nees if v != worst)
 
 
+def test_a_solution_that_resets_at_every_epoch_is_noted(tmp_path):
+    """Pseudoranges assumed good to 1000 km: the snapshot that initializes a vehicle has a
+    position sigma of ~1e6 m times its DOP, above divergence_position_sigma_m (1000 m), so the
+    next GNSS epoch resets it again, and the next. The table's errors are then those of
+    single-epoch snapshots; the run says so (the other solution, with the default 5 m, is
+    never reset and not named)."""
+    sc = load_scenario(None, ["duration_s=3.0", 'solutions=[{name="G", sensors=["gnss"], pseudorange_sigma_m=1e6}, '
+                              '{name="G5", sensors=["gnss"]}]'])
+    res = run_scenario(sc, tmp_path / "r", quiet=True, replay=False)
+    counters = res.summary["filter_counters"]
+    epochs = sum(v["epochs"] for v in res.summary["statistics"]["G"]["vehicles"].values())
+    assert counters["G"]["divergence_reset"] > 0.9 * epochs  # every epoch after the first of each vehicle
+    assert counters.get("G5", {}).get("divergence_reset", 0) == 0
+    note = res.summary["note"]
+    assert note.startswith(f"G ({counters['G']['divergence_reset']} resets in ") and "G5" not in note
+    assert "restarted its vehicles from single-epoch GNSS snapshots" in note and "1000 m" in note
+
+
 def test_the_overconfidence_note_names_the_causes_the_run_knows():
     """The note names the UWB solutions without bias states among those listed (MSSI ranges
     carry decimetre biases the default filter treats as white noise: a 20-car open_highway run's

@@ -715,7 +715,7 @@ def _run_scenario(scenario: Scenario, out_dir: Path, *, quiet: bool, replay: boo
             "filter_counters": filter_counters,  # e.g. clock_jump_detected, divergence_reset, nonfinite_*  # vehicles the lead's filter dropped (silent) and re-added
         }
         note = _run_note(scenario, t_end, fault_log, sol_stats, summary["gnss"], summary["exchange"], summary["uwb"],
-                         summary["bearing"])
+                         summary["bearing"], filter_counters)
         if note:
             summary["note"] = note
         summary["table"] = paper_table(sol_stats) if sol_stats else ""
@@ -724,15 +724,17 @@ def _run_scenario(scenario: Scenario, out_dir: Path, *, quiet: bool, replay: boo
 
 
 def _run_note(scenario: Scenario, t_end: float, fault_log: Any, sol_stats: dict[str, Any], gnss: dict[str, Any],
-              exchange: dict[str, int], uwb: dict[str, Any], bearing: dict[str, Any]) -> str:
+              exchange: dict[str, int], uwb: dict[str, Any], bearing: dict[str, Any],
+              filter_counters: dict[str, dict[str, int]] | None = None) -> str:
     """summary.json's ``note`` ("" if none), what a user should know about a run that completed:
     a sensor so slow that the run has fewer than 2 of its epochs
     (:meth:`Scenario.sparse_sensor_warnings`, also printed as the run starts), it ended early
     (every cluster vehicle at the end of its route), a fault could not act (it
     starts after the run's end, or changed no measurement), no solution estimated any vehicle
     (:func:`_why_nothing_estimated`), a solution's UWB or bearing sensor measured nothing, a
-    vehicle's filter was badly overconfident (:func:`_overconfident`), most V2V messages arrived
-    after the filter had passed their time tag."""
+    vehicle's filter was badly overconfident (:func:`_overconfident`), a solution restarted its
+    vehicles so often that its estimates are snapshots rather than filtered
+    (:func:`_reset_note`), most V2V messages arrived after the filter had passed their time tag."""
     from v2v.faults import unreachable_faults
 
     notes = list(scenario.sparse_sensor_warnings())
@@ -762,6 +764,9 @@ def _run_note(scenario: Scenario, t_end: float, fault_log: Any, sol_stats: dict[
     over = _overconfident(sol_stats)
     if over:
         notes.append(_overconfident_note(scenario, over, gnss))
+    resets = _reset_note(scenario, sol_stats, filter_counters or {})
+    if resets:
+        notes.append(resets)
     if exchange and exchange["late"] > 0.5 * (exchange["sent"] - exchange["lost"]):
         notes.append(f"{exchange['late']} of the {exchange['sent'] - exchange['lost']} V2V messages not lost arrived after "
                      f"the filter had passed their time tag and were dropped (exchange.latency_s = "
@@ -803,6 +808,39 @@ def _overconfident_note(scenario: Scenario, over: list[tuple[float, str, str]], 
     return (f"the filter is overconfident: mean position NEES above {NEES_NOTE_FACTOR * 3:g} ({NEES_NOTE_FACTOR:g} "
             f"times its expectation of 3) for {text}: the errors exceed what it assumes "
             f"({'; '.join(hints) if hints else 'see the *_sigma_* fields; unmodelled multipath'}); see nees_pos in statistics")
+
+
+# A solution that reset its vehicles at more than this fraction of their estimated epochs is
+# noted. A healthy run resets a vehicle rarely or never (0-2 times in the shipped scenarios'
+# runs of 120-300 s, all in the urban canyon); a filter whose assumed noises let its
+# covariance grow past divergence_position_sigma_m between GNSS epochs resets at every one.
+RESET_NOTE_FRACTION = 0.1
+
+
+def _reset_note(scenario: Scenario, sol_stats: dict[str, Any], filter_counters: dict[str, dict[str, int]]) -> str | None:
+    """A note naming the solutions whose ``divergence_reset`` count is above
+    :data:`RESET_NOTE_FRACTION` of their vehicles' estimated output epochs, or None. Each reset
+    restarts a vehicle from the next GNSS snapshot (least squares of one epoch), so such a
+    solution's errors are those of single-epoch snapshots: its table looks plausible while the
+    filter's own sigmas (``*_sigma_mean_m``) may be kilometres."""
+    found = []
+    for sol in scenario.solutions:
+        n = int(filter_counters.get(sol.name, {}).get("divergence_reset", 0))
+        epochs = sum(int(v.get("epochs", 0) * v.get("availability", 0.0) + 0.5)
+                     for v in sol_stats.get(sol.name, {}).get("vehicles", {}).values())
+        if n and epochs and n > RESET_NOTE_FRACTION * epochs:
+            found.append(f"{sol.name} ({n} resets in {epochs} vehicle-epochs)")
+    if not found:
+        return None
+    from v2v.estimation.filter import FilterConfig
+
+    fc = FilterConfig()
+    return (f"{', '.join(found)} restarted {'its' if len(found) == 1 else 'their'} vehicles from single-epoch GNSS "
+            "snapshots again and again "
+            f"(divergence_reset in filter_counters: a vehicle is reset when its position sigma exceeds "
+            f"{fc.divergence_position_sigma_m:g} m or its pseudorange tests say it diverged), so its errors are "
+            "the snapshots', not a filter's; check the solution's *_sigma_* fields (the filter's assumed noises) "
+            "against the sensors'")
 
 
 def _why_nothing_estimated(scenario: Scenario, sol_stats: dict[str, Any], gnss: dict[str, Any],
