@@ -16,6 +16,7 @@ import math
 import os
 import re
 import shutil
+import signal
 import subprocess
 import sys
 import time
@@ -505,6 +506,38 @@ def test_turning_replay_on_reruns_the_runs_without_a_replay(tiny_study, local_sw
     assert (res.executed, res.skipped) == (4, 0)
     assert all((out / "runs" / r.run_id / "replay.rrd").is_file() for r in study_base.runs)
     assert run_study(study, out, scheduler=external_scheduler).executed == 0
+
+
+@pytest.mark.sumo
+def test_ctrl_c_on_a_remote_cluster_waits_for_the_started_runs_and_lists_them(external_scheduler, tmp_path):
+    """Dask's cancel does not stop a task a worker is already executing: after Ctrl-C the runs
+    the workers had started still complete and publish their folders. The sweep waits for them,
+    so that runs.parquet lists exactly the complete run folders and no staging folder is left
+    (it used to exit at once, its table missing the runs that landed after it)."""
+    study = tmp_path / "s.toml"
+    study.write_text(TINY.replace("seeds = [1, 2]", "seeds = [1, 2, 3, 4]").replace("duration_s = 5.0", "duration_s = 20.0"))
+    out = tmp_path / "out"
+    proc = subprocess.Popen([sys.executable, "-m", "v2v", "sweep", str(study), "--out", str(out), "--quiet",
+                             "--scheduler", external_scheduler], stderr=subprocess.PIPE, text=True)
+    try:
+        for _ in range(600):  # until a worker has started a run (its staging folder exists)
+            if (out / "runs").is_dir() and any((out / "runs").glob(".*.partial")):
+                break
+            time.sleep(0.05)
+        else:
+            pytest.fail("no run started in 30 s")
+        proc.send_signal(signal.SIGINT)
+        _, err = proc.communicate(timeout=120)
+    finally:
+        if proc.poll() is None:
+            proc.kill()
+    assert proc.returncode == 130, err
+    assert "sweep: waiting for the" in err and "run the same command again for the rest" in err, err
+    runs = out / "runs"
+    assert not list(runs.glob(".*.partial"))
+    complete = {d.name for d in runs.iterdir() if (d / "summary.json").is_file()}
+    listed = set(pd.read_parquet(out / "runs.parquet")["run_id"])
+    assert complete and complete == listed and len(listed) < 8  # the started runs, not the cancelled ones
 
 
 @pytest.mark.sumo

@@ -373,6 +373,10 @@ def main(argv: list[str] | None = None) -> int:
         if args.cmd == "replay":  # Ctrl-C is how the web viewer is stopped
             print(f"v2v: replay viewer {what}", file=sys.stderr)
             return 0 if not isinstance(exc, Terminated) else 128 + signal.SIGTERM
+        if args.cmd == "sweep" and getattr(args, "sweep_cmd", None) == "run":  # (v2v.sweep.run_study's cleanup)
+            print(f"v2v: {what}; the sweep folder keeps every run that completed (runs.parquet lists them): run the "
+                  "same command again for the rest", file=sys.stderr)
+            return 128 + signal.SIGTERM if isinstance(exc, Terminated) else 130
         done = _completed_run_folder(args, published_before)
         if done is not None:  # the signal came after the run's folder was whole: the run is done
             print(f"v2v: {what} after the run finished; its folder {done} is complete", file=sys.stderr)

@@ -65,7 +65,7 @@ from dataclasses import dataclass, field
 from pathlib import Path
 from typing import Any
 
-from v2v.errors import UserError
+from v2v.errors import Terminated, UserError
 from v2v.io.atomic import make_folder
 
 STUDY_KEYS = ("base", "seeds", "replay", "save_measurements", "set", "grid")
@@ -767,6 +767,46 @@ def run_study(
         raise
 
 
+def _executing_run_keys(keys: list[str], dask_worker: Any = None) -> list[str]:
+    """(On a worker, through ``Client.run``.) Which of ``keys`` this worker is executing now: a
+    cancelled task that had started stays in its executing set until its function returns."""
+    st = dask_worker.state
+    wanted = set(keys)
+    return [ts.key for ts in st.executing | st.long_running if ts.key in wanted]
+
+
+def _await_started_runs(client: Any, futures: list[Any], stopped_by: BaseException | None, quiet: bool) -> list[str]:
+    """After a remote cluster's sweep stopped early: wait until its workers have finished the
+    runs they had started (Dask cannot stop a task once its function runs; each such run
+    completes and publishes its folder), so that the table written next lists them. A second
+    Ctrl-C, or a SIGTERM, stops the waiting. Returns the run keys still executing when it
+    stopped waiting (empty when none is)."""
+    if stopped_by is None or not futures:
+        return []
+    keys = [f.key for f in futures]
+
+    def busy() -> list[str]:
+        try:
+            return sorted({k for ks in client.run(_executing_run_keys, keys).values() for k in ks})
+        except Exception:  # noqa: BLE001 - a worker or the scheduler gone: nothing left to wait for there
+            return []
+
+    running = busy()
+    if running and not isinstance(stopped_by, Terminated):
+        print(f"sweep: waiting for the {len(running)} run(s) the cluster's workers had started (Dask cannot stop a "
+              "running task); Ctrl-C again to leave them running", file=sys.stderr, flush=True)
+        try:
+            while running:
+                time.sleep(0.25)
+                running = busy()
+        except KeyboardInterrupt:
+            running = running or busy()
+    if running:
+        print(f"sweep: {len(running)} run(s) still running on the cluster's workers are not in runs.parquet: "
+              "rerun the study once they are done to list them", file=sys.stderr, flush=True)
+    return running
+
+
 def _check_out_folder(study: Study, out: Path) -> None:
     """Refuse, in one line naming --out, a folder a sweep of ``study`` must not write to: a
     single run's folder, or another study's sweep (whose runs.parquet and sweep.json this one
@@ -916,13 +956,23 @@ def _run_study_locked(study: Study, out: Path, scheduler: str | None, workers: i
                         _write_runs(out, study, rows)
                         now = time.monotonic()
                         next_flush = now + max(flush_every_s, 20.0 * (now - t_w))
+        except BaseException as exc:
+            stopped_by = exc
+            raise
+        else:
+            stopped_by = None
         finally:
             df = _write_runs(out, study, rows)
             client.cancel([f for f in futures if not f.done()])
+            # A task a remote cluster's worker is executing is not stopped by the cancel: wait
+            # for those runs (Ctrl-C) so that the table lists them; the local cluster's workers
+            # are closed instead, and what they were writing is removed.
+            left = [] if cluster is not None else _await_started_runs(client, futures, stopped_by, quiet)
             client.close()
             if cluster is not None:
                 cluster.close()
-                _remove_staging(runs_dir)  # its workers are gone: nothing is being written any more
+            if not left:
+                _remove_staging(runs_dir)  # its workers are gone or idle: nothing is being written any more
                 # runs that completed while the cluster shut down (after Ctrl-C) are complete too;
                 # the table is written again only if there are any (it holds every other row)
                 n_rows = len(rows)
