@@ -263,6 +263,10 @@ def load_study(path: str | Path) -> Study:
     def where(k: str) -> str:
         return "grid" if k in grid else "set"
 
+    for b in [*fixed, *grid]:  # (what apply_override would refuse naming --set, named here as the study's key)
+        if not all(part.strip() for part in b.split(".")):
+            raise UserError(f"key {b!r} has an empty part" if b.strip() else "an empty key", field=f"{where(b)}.{b}",
+                            fix='one "." between the parts of a quoted dotted key, e.g. "clusters.0.vehicles"')
     for b in [*fixed, *grid]:  # a path inside another: one value would silently override the other
         parts = b.split(".")
         for a in (".".join(parts[:i]) for i in range(1, len(parts))):
@@ -295,7 +299,11 @@ def load_study(path: str | Path) -> Study:
                 check_scenario(first, study.base_dir)
                 checked.add(key)
         except UserError as exc:
-            raise UserError(f"{exc.message} (study {p.name}, run {desc})", field=exc.field, fix=exc.fix) from None
+            field = exc.field
+            if field and field.startswith("--set "):  # a key path the scenario has no place for (apply_override)
+                path = field.removeprefix("--set ")
+                field = f"{where(path)}.{path}"
+            raise UserError(f"{exc.message} (study {p.name}, run {desc})", field=field, fix=exc.fix) from None
         for line in first.sparse_sensor_warnings():
             warned.setdefault(line, []).append(desc)
         readable = "_".join(_slug(v) for v in labels.values()) or "run"
@@ -439,6 +447,21 @@ def _runs_table(study: Study, rows: dict[str, dict[str, Any]]):
     for c in metrics:
         df[c] = df[c].astype(float)
     return df.iloc[:0].copy() if empty else df
+
+
+def _import_table_modules() -> threading.Thread:
+    """Import pandas and pyarrow's Parquet writer on a thread of their own (started as the
+    study starts; joined by the first table write's own imports, which wait for it). A signal
+    interrupts only the main thread: a Ctrl-C in the ~0.3 s of pandas' first import left it
+    partially initialized, and every later write of the table, the one after the interrupt
+    included, then failed ("partially initialized module 'pandas'")."""
+    def load() -> None:
+        import pandas  # noqa: F401
+        import pyarrow.parquet  # noqa: F401
+
+    t = threading.Thread(target=load, name="v2v-sweep-imports", daemon=True)
+    t.start()
+    return t
 
 
 def _write_runs(out: Path, study: Study, rows: dict[str, dict[str, Any]]):
@@ -767,40 +790,48 @@ def run_study(
         raise
 
 
-def _executing_run_keys(keys: list[str], dask_worker: Any = None) -> list[str]:
-    """(On a worker, through ``Client.run``.) Which of ``keys`` this worker is executing now: a
-    cancelled task that had started stays in its executing set until its function returns."""
+def _run_keys_on_worker(keys: list[str], dask_worker: Any = None) -> list[tuple[str, bool]]:
+    """(On a worker, through ``Client.run``.) Which of ``keys`` this worker still holds as work,
+    each with whether it is running now: a cancelled task whose function had started stays
+    (state ``cancelled``, in the executing set) until the function returns, and a task it was
+    given but had not started stays until the scheduler's release reaches it (it may start
+    meanwhile). Finished results (``memory``) are not work."""
     st = dask_worker.state
-    wanted = set(keys)
-    return [ts.key for ts in st.executing | st.long_running if ts.key in wanted]
+    running = st.executing | st.long_running
+    return [(ts.key, ts in running) for k in keys
+            if (ts := st.tasks.get(k)) is not None and ts.state not in ("memory", "error", "released", "forgotten")]
 
 
 def _await_started_runs(client: Any, futures: list[Any], stopped_by: BaseException | None, quiet: bool) -> list[str]:
-    """After a remote cluster's sweep stopped early: wait until its workers have finished the
-    runs they had started (Dask cannot stop a task once its function runs; each such run
-    completes and publishes its folder), so that the table written next lists them. A second
-    Ctrl-C, or a SIGTERM, stops the waiting. Returns the run keys still executing when it
-    stopped waiting (empty when none is)."""
+    """After a remote cluster's sweep stopped early (its futures cancelled): wait until its
+    workers hold none of the study's runs, so that the table written next lists every run
+    that completes. Dask cannot stop a task once its function runs: such a run completes and
+    publishes its folder. A second Ctrl-C, or a SIGTERM, stops the waiting. Returns the run keys
+    still running when it stopped waiting (empty when none is)."""
     if stopped_by is None or not futures:
         return []
     keys = [f.key for f in futures]
 
-    def busy() -> list[str]:
+    def held() -> tuple[list[str], list[str]]:  # (held by a worker, of which running)
         try:
-            return sorted({k for ks in client.run(_executing_run_keys, keys).values() for k in ks})
+            per = client.run(_run_keys_on_worker, keys)
         except Exception:  # noqa: BLE001 - a worker or the scheduler gone: nothing left to wait for there
-            return []
+            return [], []
+        pairs = [p for ps in per.values() for p in ps]
+        return sorted({k for k, _ in pairs}), sorted({k for k, r in pairs if r})
 
-    running = busy()
-    if running and not isinstance(stopped_by, Terminated):
-        print(f"sweep: waiting for the {len(running)} run(s) the cluster's workers had started (Dask cannot stop a "
-              "running task); Ctrl-C again to leave them running", file=sys.stderr, flush=True)
-        try:
-            while running:
-                time.sleep(0.25)
-                running = busy()
-        except KeyboardInterrupt:
-            running = running or busy()
+    waiting, running = held()
+    said = False
+    try:
+        while waiting and not isinstance(stopped_by, Terminated):
+            if running and not said:
+                print(f"sweep: waiting for the {len(running)} run(s) the cluster's workers had started (Dask cannot "
+                      "stop a running task); Ctrl-C again to leave them running", file=sys.stderr, flush=True)
+                said = True
+            time.sleep(0.1)
+            waiting, running = held()
+    except KeyboardInterrupt:
+        running = running or held()[1]
     if running:
         print(f"sweep: {len(running)} run(s) still running on the cluster's workers are not in runs.parquet: "
               "rerun the study once they are done to list them", file=sys.stderr, flush=True)
@@ -886,6 +917,7 @@ def _run_study_locked(study: Study, out: Path, scheduler: str | None, workers: i
     from dask.distributed import as_completed
     from tqdm import tqdm
 
+    _import_table_modules()  # (meanwhile the cluster starts)
     runs_dir = out / "runs"
     rows, pending = _scan(study, runs_dir)
     skipped = len(rows)
@@ -916,6 +948,7 @@ def _run_study_locked(study: Study, out: Path, scheduler: str | None, workers: i
         assert client is not None
         by_id = {s.run_id: s for s in pending}
         futures = []
+        stopped_by: BaseException | None = None  # what ended the loop early (Ctrl-C, SIGTERM, an error)
         try:
             for spec in pending:
                 task = RunTask(run_id=spec.run_id, scenario=spec.scenario, out_dir=str(runs_dir / spec.run_id),
@@ -923,7 +956,8 @@ def _run_study_locked(study: Study, out: Path, scheduler: str | None, workers: i
                                base_dir=str(study.base_dir) if study.base_dir else None)
                 futures.append(client.submit(execute_run, task, key=f"v2v-run-{spec.run_id}", pure=False))
             # the table of the runs already complete, written while the workers start on the others
-            # (its first write imports pandas: ~0.2 s that the workers no longer wait for)
+            # (its first write may wait for pandas' import, _import_table_modules: ~0.2 s that the
+            # workers no longer wait for)
             _write_runs(out, study, rows)
             next_flush = time.monotonic() + flush_every_s
             lines = not quiet and not sys.stderr.isatty()  # (no tqdm bar there: a log, CI, nohup)
@@ -959,18 +993,20 @@ def _run_study_locked(study: Study, out: Path, scheduler: str | None, workers: i
         except BaseException as exc:
             stopped_by = exc
             raise
-        else:
-            stopped_by = None
         finally:
-            df = _write_runs(out, study, rows)
-            client.cancel([f for f in futures if not f.done()])
-            # A task a remote cluster's worker is executing is not stopped by the cancel: wait
-            # for those runs (Ctrl-C) so that the table lists them; the local cluster's workers
-            # are closed instead, and what they were writing is removed.
-            left = [] if cluster is not None else _await_started_runs(client, futures, stopped_by, quiet)
-            client.close()
-            if cluster is not None:
-                cluster.close()
+            left: list[str] = []
+            try:
+                df = _write_runs(out, study, rows)
+            finally:  # (the runs cancelled and the cluster closed even if the table could not be written)
+                client.cancel([f for f in futures if not f.done()])
+                # A task a remote cluster's worker is executing is not stopped by the cancel: wait
+                # for those runs (Ctrl-C) so that the table lists them; the local cluster's
+                # workers are closed instead, and what they were writing is removed.
+                if cluster is None:
+                    left = _await_started_runs(client, futures, stopped_by, quiet)
+                client.close()
+                if cluster is not None:
+                    cluster.close()
             if not left:
                 _remove_staging(runs_dir)  # its workers are gone or idle: nothing is being written any more
                 # runs that completed while the cluster shut down (after Ctrl-C) are complete too;
