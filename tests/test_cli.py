@@ -485,6 +485,7 @@ def test_readme_scenario_reference_shows_every_field_at_its_default(tmp_path):
     ("clusters.0.vehicles=1", "use a value >= 2"),
     ("duration_s=-1", "use a value > 0"),
     ("sensors.bearing.sigma_deg=45", "use a value <= 30"),
+    ("sensors.bearing.max_range_m=inf", "use a value <= 10000"),  # (the check, not the run, refuses it)
     ("sensors.gnss.oscillator='XO'", "use one of 'TCXO' or 'OCXO'"),
     ("seed=1.5", "give a whole number"),
     ("sensors.gnss.errors.noise=3", "give true or false"),

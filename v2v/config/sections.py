@@ -127,7 +127,7 @@ class BearingSection(_Model):
     enabled: StrictBool = True
     sigma_deg: StrictFloat = Field(default=0.5, gt=0.0, le=30.0)
     field_of_view_deg: StrictFloat = Field(default=360.0, gt=0.0, le=360.0)
-    max_range_m: StrictFloat = Field(default=150.0, gt=0.0)
+    max_range_m: StrictFloat = Field(default=150.0, gt=0.0, le=10000.0)  # (a camera or radar: 10 km is beyond any)
     rate_hz: StrictFloat = Field(default=10.0, gt=0.0, le=100.0)
     azimuth_sigma_deg: StrictFloat = Field(default=0.1, ge=0.0, le=30.0)
     measuring: Literal["all"] | list[str] = "all"
