@@ -170,6 +170,9 @@ def test_the_cli_says_each_mistake_in_one_line_exit_2(tmp_path):
     ('{kind="pr_blunder", start_s=1.0, duration_s=2.0, size_m=nan}', "faults.0.size_m", "give a finite size_m"),
     ('{kind="clock_jump", start_s=1.0, size_m=inf}', "faults.0.size_m", "give a finite size_m"),
     ('{kind="uwb_scale_drift", start_s=1.0, scale_ppm=nan}', "faults.0.scale_ppm", "give a finite scale_ppm"),
+    # finite but absurd: squares of such errors overflowed (numpy RuntimeWarnings in the run)
+    ('{kind="uwb_replace", start_s=1.0, vehicles=["c1.1"], size_m=1e300}', "faults.0.size_m", "give |size_m| <= 3e+08"),
+    ('{kind="uwb_scale_drift", start_s=1.0, scale_ppm=1e300}', "faults.0.scale_ppm", "give |scale_ppm| <= 1e+06"),
     ('{kind="nonfinite", start_s=1.0, duration_s=1.0, size_m=-inf}', "faults.0.size_m", "give size_m = inf"),
     ('{kind="nonfinite", start_s=1.0, duration_s=1.0, size_m=5.0}', "faults.0.size_m", "give size_m = inf"),
     # a slip beyond int64 was an OverflowError traceback in the run
@@ -215,6 +218,11 @@ def test_fault_fields_a_kind_uses_and_nonfinite_sizes_are_accepted(tmp_path):
     ('clusters.0.name=""', "clusters.0.name", "give a name such as"),
     ('clusters.0.name="a/b"', "clusters.0.name", "give a name such as"),
     ('clusters.0.name="a\\tb"', "clusters.0.name", "give a name such as"),
+    # a solution's name labels the table's rows and the statistics: "" left them blank, "a\nb" split a row
+    ('solutions=[{name="", sensors=["gnss"]}]', "solutions.0.name", "e.g. name ="),
+    ('solutions=[{name=" ", sensors=["gnss"]}]', "solutions.0.name", "e.g. name ="),
+    ('solutions=[{name="a\\nb", sensors=["gnss"]}]', "solutions.0.name", "e.g. name ="),
+    ('solutions=[{name="' + "x" * 101 + '", sensors=["gnss"]}]', "solutions.0.name", "give a name of at most 100"),
 ])
 def test_names_and_paths_that_cannot_be_folders_ids_or_files_are_refused(override, field, fix):
     err = _error(override)

@@ -60,6 +60,8 @@ _OPTIONAL_DEFAULTS: dict[str, object] = {"prns": [], "size_m": 0.0, "size_cycles
                                          "probability": 1.0, "sensor": "gnss"}
 MAX_PRN = GPS_MAX_PRN  # GPS PRNs (the nominal constellation's slots are 1-27; a RINEX file's GPS PRNs 1-32)
 MAX_SIZE_CYCLES = 10**9  # (carrier_cycles is float64, ambiguity_cycles int64: beyond, a slip overflows or loses cycles)
+MAX_SIZE_M = 3.0e8  # |size_m|: a 1 s clock jump (c x 1 s); beyond, squares of the errors lose meaning, then overflow
+MAX_SCALE_PPM = 1.0e6  # |scale_ppm|: a scale factor error of 100 %
 
 
 class FaultSection(BaseModel):
@@ -93,8 +95,14 @@ class FaultSection(BaseModel):
         elif not math.isfinite(self.size_m):
             raise ValueError(f"@size_m: {k}'s size_m must be a finite number of metres (got {self.size_m!r}) -- fix: give"
                              " a finite size_m (non-finite measurements: kind = \"nonfinite\")")
+        elif abs(self.size_m) > MAX_SIZE_M:
+            raise ValueError(f"@size_m: {k}'s size_m is beyond +-{MAX_SIZE_M:g} m (got {self.size_m!r}; {MAX_SIZE_M:g} m is "
+                             f"a 1 s clock jump) -- fix: give |size_m| <= {MAX_SIZE_M:g}")
         if not math.isfinite(self.scale_ppm):
             raise ValueError(f"@scale_ppm: must be a finite number (got {self.scale_ppm!r}) -- fix: give a finite scale_ppm")
+        if abs(self.scale_ppm) > MAX_SCALE_PPM:
+            raise ValueError(f"@scale_ppm: beyond +-{MAX_SCALE_PPM:g} ppm, a 100 % scale error (got {self.scale_ppm!r}) -- "
+                             f"fix: give |scale_ppm| <= {MAX_SCALE_PPM:g}")
         if k == "satellites_lost" and not self.prns:
             raise ValueError("@prns: satellites_lost needs the PRNs it removes -- fix: give prns = [...], e.g. [5, 12]")
         if k in ("pr_blunder", "uwb_blunder") and self.size_m == 0.0:

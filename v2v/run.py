@@ -944,11 +944,16 @@ class _RunAccumulators:
             return {"ranges": 0}
         err = np.concatenate(self._uwb_err)
         nlos = ~np.concatenate(self._uwb_los)
+        n = int(err.size)
+        ok = np.isfinite(err)  # (a nonfinite fault's ranges: counted, not averaged)
+        if not ok.all():
+            err, nlos = err[ok], nlos[ok]
         return {
-            "ranges": int(err.size),
-            "nlos_fraction": float(nlos.mean()),
-            "error_mean_m": float(err.mean()),
-            "error_std_m": float(err.std()),
+            "ranges": n,
+            "nonfinite": n - int(err.size),
+            "nlos_fraction": float(nlos.mean()) if err.size else None,
+            "error_mean_m": float(err.mean()) if err.size else None,
+            "error_std_m": float(err.std()) if err.size else None,
             "nlos_error_mean_m": float(err[nlos].mean()) if nlos.any() else None,
         }
 

@@ -140,6 +140,7 @@ class SensorsSection(_Model):
 
 
 SENSOR_NAMES = ("gnss", "uwb", "bearing")
+SOLUTION_NAME_BYTES = 100
 
 
 class ExchangeSection(_Model):
@@ -273,6 +274,18 @@ class SolutionSection(_Model):
     def height_aiding_sigma(self) -> float | None:
         """The height-aiding sigma in metres, or None when ``height_aiding`` is off."""
         return self.height_aiding_sigma_m if self.height_aiding else None
+
+    @field_validator("name")
+    @classmethod
+    def _name_is_a_label(cls, v: str) -> str:
+        # the name labels the table's rows, summary.json's statistics and runs.parquet's columns
+        if not v.strip() or any(ord(ch) < 32 or ord(ch) == 127 for ch in v):
+            raise ValueError('must be a non-empty name without control characters (it labels the table\'s rows and the '
+                             'statistics) -- fix: e.g. name = "GPS+UWB"')
+        if len(v.encode()) > SOLUTION_NAME_BYTES:
+            raise ValueError(f"is {len(v.encode())} bytes long -- fix: give a name of at most {SOLUTION_NAME_BYTES} "
+                             "characters (UTF-8 bytes)")
+        return v
 
     @field_validator("sensors")
     @classmethod
