@@ -314,6 +314,27 @@ def test_gnss_min_satellites_is_at_most_what_the_rinex_sky_holds(tmp_path):
     assert not (tmp_path / "r").exists()
 
 
+def test_a_run_past_the_ephemeris_end_blames_its_duration_and_one_before_it_its_start(tmp_path):
+    """A run that starts inside a navigation file's span and runs past its end is too long
+    (duration_s, with the longest that fits), not badly started; one that starts outside it
+    names start_utc. Both messages give the span's ends with their dates."""
+    from v2v.sensors.gnss.rinex import read_rinex_nav
+    from v2v.sensors.gnss.source import ephemeris_source
+    from v2v.sensors.gnss.time import gps_s_to_utc
+
+    nav = REPO / "tests" / "data" / "gnss_2021-04-28" / "brdc1180.21n.excerpt"
+    lo, hi = read_rinex_nav(nav).validity()
+    start = hi - 600.0  # 10 min before the span's end
+    with pytest.raises(UserError) as ei:
+        ephemeris_source(str(nav), start, 1200.0)
+    assert ei.value.field == "duration_s" and ei.value.fix.startswith("give duration_s <= 600 s"), ei.value.one_line()
+    assert f"{gps_s_to_utc(hi):%Y-%m-%d %H:%M}" in ei.value.message
+    ephemeris_source(str(nav), start, 600.0)  # (exactly to the end: inside)
+    with pytest.raises(UserError) as ei:
+        ephemeris_source(str(nav), lo - 60.0, 10.0)
+    assert ei.value.field == "start_utc" and "starts outside" in ei.value.message, ei.value.one_line()
+
+
 def test_the_nominal_sky_has_the_satellites_the_bound_says():
     from v2v.config.sections import NOMINAL_SATELLITES
     from v2v.sensors.gnss.source import ephemeris_source

@@ -37,9 +37,12 @@ def ephemeris_source(ephemeris: str, gps_start_s: float, duration_s: float) -> E
     if gps_start_s < lo or end > hi:
         from v2v.sensors.gnss.time import gps_s_to_utc
 
-        raise UserError(
-            f"the run ({gps_s_to_utc(gps_start_s):%Y-%m-%d %H:%M:%S} UTC + {duration_s:.0f} s) is outside "
-            f"the ephemeris ({gps_s_to_utc(lo):%Y-%m-%d %H:%M} to {gps_s_to_utc(hi):%H:%M} UTC)",
-            field="start_utc", fix="pick a start time inside the navigation file's span",
-        )
+        span = f"the ephemeris ({gps_s_to_utc(lo):%Y-%m-%d %H:%M} to {gps_s_to_utc(hi):%Y-%m-%d %H:%M} UTC)"
+        run = f"the run ({gps_s_to_utc(gps_start_s):%Y-%m-%d %H:%M:%S} UTC + {duration_s:.0f} s)"
+        if lo <= gps_start_s <= hi:  # it starts inside and runs past the end: its length is what is wrong
+            raise UserError(f"{run} ends at {gps_s_to_utc(end):%Y-%m-%d %H:%M:%S} UTC, after the end of {span}",
+                            field="duration_s", fix=f"give duration_s <= {hi - gps_start_s:.0f} s, or an earlier "
+                            "start_utc")
+        raise UserError(f"{run} starts outside {span}", field="start_utc",
+                        fix="pick a start time inside the navigation file's span")
     return eph
