@@ -299,6 +299,7 @@ def test_run_and_check_print_the_warning_as_they_start_also_quiet(tmp_path):
     # the run's note says it too (a sweep's runs.parquet and report list the runs with a note)
     note = json.loads((tmp_path / "r" / "summary.json").read_text())["note"]
     assert note.startswith(lines[0].removeprefix("v2v: warning: ")), note
+    assert lines[-1] == "v2v: note: " + note and not p.stdout.strip()  # (--quiet: the note, on stderr, and no table)
     sc = tmp_path / "s.toml"
     sc.write_text("name = 's'\n")
     p = _v2v("scenario", "check", str(sc), *ov, cwd=tmp_path)

@@ -20,14 +20,15 @@ class _Parser(argparse.ArgumentParser):
         self.exit(EXIT_USER_ERROR, f"v2v: error: {message} -- fix: see `{self.prog} --help`\n")
 
 
-def _add_run_options(p: argparse.ArgumentParser) -> None:
-    p.add_argument("--out", type=Path, default=None, help="run folder to write (default: runs/<scenario name>)")
+def _add_run_options(p: argparse.ArgumentParser, default_out: str = "runs/<scenario name>") -> None:
+    p.add_argument("--out", type=Path, default=None, help=f"run folder to write (default: {default_out})")
     p.add_argument("--seed", type=int, default=None, help="override the scenario's seed (drives SUMO and every sensor)")
     p.add_argument(
         "--set", dest="overrides", action="append", default=[], metavar="KEY=VALUE",
         help="override a scenario field, e.g. --set clusters.0.vehicles=20 (repeatable; values are TOML)",
     )
-    p.add_argument("--quiet", action="store_true", help="no progress bar and no table")
+    p.add_argument("--quiet", action="store_true", help="no progress bar and no table (the run's note, if any, still "
+                   "goes to stderr)")
     p.add_argument("--no-replay", action="store_true", help="do not write replay.rrd (rerun recording)")
     p.add_argument("--save-measurements", action="store_true", help="also write measurements.parquet (every raw measurement)")
 
@@ -42,7 +43,7 @@ def build_parser() -> argparse.ArgumentParser:
     _add_run_options(r)
 
     d = sub.add_parser("demo", help="run the built-in default scenario and print a short table")
-    _add_run_options(d)
+    _add_run_options(d, default_out="runs/demo")
 
     n = sub.add_parser("nets", help="shipped road networks: build, list, import OpenStreetMap")
     nsub = n.add_subparsers(dest="nets_cmd", required=True, parser_class=_Parser,
@@ -113,6 +114,8 @@ def _cmd_run(args, demo: bool = False) -> int:
     )
     if not args.quiet:
         _print_summary(result.summary, out)
+    elif "note" in result.summary:  # (what the results rest on: also with --quiet, as the warnings)
+        print("v2v: note: " + result.summary["note"], file=sys.stderr, flush=True)
     return 0
 
 
