@@ -458,3 +458,32 @@ def test_script_options_blame_the_option_that_set_a_field():
     with pytest.raises(UserError) as e, script_options(options):
         raise UserError("lane 5 is not on the route", field="clusters.0.lanes", fix="use 0..1")  # (a run's set-up)
     assert e.value.one_line() == "--lanes: lane 5 is not on the route (clusters.0.lanes) -- fix: use 0..1"
+
+
+def test_set_reaches_quoted_keys_with_dots_as_errors_name_them():
+    """Vehicle ids hold a dot: an error names such a field `sensors.uwb.vehicle_profiles."c1.2"`,
+    and --set takes the same quoted part (it split it at the dot into "c1 and 2")."""
+    sc = load_scenario(None, ['sensors.uwb.vehicle_profiles."c1.2"="mssi"'])
+    assert sc.sensors.uwb.vehicle_profiles == {"c1.2": "mssi"}
+    err = _error('sensors.uwb.vehicle_profiles."c1.2"="nope"')
+    assert err.field == 'sensors.uwb.vehicle_profiles."c1.2"', err.one_line()
+
+
+def test_an_index_into_a_list_the_scenario_lacks_says_so():
+    """faults is empty by default: faults.0.start_s has no item to set (it said "faults: Input
+    should be a valid list", an index having made a table of it)."""
+    err = _error("faults.0.start_s=1.0")
+    assert err.field == "--set faults.0.start_s" and "no item '0' in list 'faults'" in err.message, err.one_line()
+    assert err.fix == "give the whole list: --set faults=[...]"
+
+
+def test_clusters_given_by_set_are_filled_from_the_default_cluster_as_a_file_s_are():
+    sc = load_scenario(None, ['clusters=[{name="X"}]'])
+    default = load_scenario(None).clusters[0]
+    assert sc.clusters[0].name == "X" and sc.clusters[0].model_dump(exclude={"name"}) == default.model_dump(exclude={"name"})
+
+
+def test_a_named_route_and_route_edges_together_are_refused():
+    """Both given: the listed edges silently won."""
+    err = _error('network.route_edges=["J-NW"]', 'network.route="visit"')
+    assert err.field == "network.route" and err.fix.startswith("give one"), err.one_line()

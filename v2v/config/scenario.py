@@ -92,6 +92,9 @@ class NetworkConfig(_Model):
         if not self.name and not self.net_file:
             raise ValueError("@name: no network given (network.name and network.net_file are both empty) -- fix: give"
                              ' network.name (a sumo_nets/ name, e.g. "hospital_loop") or network.net_file')
+        if self.route_edges and self.route != "default":  # (the listed edges would silently win)
+            raise ValueError(f"@route: a named route ({self.route!r}) and route_edges are both given -- fix: give one: "
+                             'route = "<name>" or route_edges = [...] (with route left at "default")')
         return self
 
 
@@ -342,12 +345,41 @@ def _parse_value(text: str) -> Any:
         return text
 
 
+def _split_assignment(assignment: str) -> tuple[str, str]:
+    """(key path, value text) of ``key=value``: the first '=' outside a quoted key part."""
+    quoted = False
+    for i, ch in enumerate(assignment):
+        if ch == '"':
+            quoted = not quoted
+        elif ch == "=" and not quoted:
+            return assignment[:i], assignment[i + 1:]
+    return assignment.split("=", 1)[0], assignment.split("=", 1)[1]
+
+
+def _key_parts(path: str) -> list[str]:
+    """A dotted key path's parts; a part in double quotes may hold dots, as in TOML
+    (``sensors.uwb.vehicle_profiles."c1.2"``, the way errors name such a field)."""
+    parts: list[str] = []
+    cur: list[str] = []
+    quoted = False
+    for ch in path.strip():
+        if ch == '"':
+            quoted = not quoted
+        elif ch == "." and not quoted:
+            parts.append("".join(cur).strip())
+            cur = []
+        else:
+            cur.append(ch)
+    parts.append("".join(cur).strip())
+    return parts
+
+
 def apply_override(data: dict[str, Any], assignment: str) -> dict[str, Any]:
     """Apply one ``a.b.0.c=value`` override to a nested dict (returns a new dict)."""
     if "=" not in assignment:
         raise UserError(f"override {assignment!r} is not key=value", field="--set", fix="write e.g. --set seed=3")
-    path, text = assignment.split("=", 1)
-    keys = path.strip().split(".")
+    path, text = _split_assignment(assignment)
+    keys = _key_parts(path)
     if keys == [""]:
         raise UserError(f"override {assignment!r} has an empty key", field="--set", fix="write e.g. --set seed=3")
     if not all(k.strip() for k in keys):  # "network..name": not silently network.name
@@ -378,6 +410,9 @@ def apply_override(data: dict[str, Any], assignment: str) -> dict[str, Any]:
                 node[k] = value
             else:
                 if k not in node:
+                    if keys[i + 1].isdigit():  # an index into a list the scenario does not have (faults = [])
+                        raise UserError(f"no item {keys[i + 1]!r} in list {'.'.join(keys[:i + 1])!r} (it has none)",
+                                        field=f"--set {path}", fix=f"give the whole list: --set {k}=[...]")
                     node[k] = {}
                 node = node[k]
         else:
@@ -559,6 +594,9 @@ def load_scenario(path: str | Path | None = None, overrides: list[str] | tuple[s
         data["solutions"] = [sol.model_dump(mode="json") for sol in paper_solutions()]
     for ov in overrides:
         data = apply_override(data, ov)
+    if overrides and isinstance(data.get("clusters"), list):  # (clusters a --set gave, filled as a file's are)
+        base_cluster = load_default_dict()["clusters"][0]
+        data["clusters"] = [deep_merge(base_cluster, c) if isinstance(c, dict) else c for c in data["clusters"]]
     if overrides:
         source += f" with {overrides_from}"
     try:
