@@ -275,7 +275,7 @@ def test_missing_and_unknown_inputs_raise_user_error(tmp_path):
     assert e.value.field == "network.poly_file"
     with pytest.raises(UserError) as e:
         nets.import_osm(tmp_path / "nope.osm", "x", tmp_path)
-    assert e.value.field == "network.osm_file"
+    assert e.value.field == "OSM"
     with pytest.raises(UserError) as e:
         nets.read_location(tmp_path / "nope.net.xml")
     assert e.value.field == "network.net_file"
@@ -297,7 +297,7 @@ def test_files_that_are_not_sumo_nets_or_osm(tmp_path):
     osm.write_text("this is not OSM")
     with pytest.raises(UserError) as e:
         nets.import_osm(osm, "zz", tmp_path / "out")
-    assert e.value.field == "network.osm_file" and not (tmp_path / "out").exists()  # (--out made by the import: gone)
+    assert e.value.field == "OSM" and not (tmp_path / "out").exists()  # (--out made by the import: gone)
     (tmp_path / "mine").mkdir()
     with pytest.raises(UserError):
         nets.import_osm(osm, "zz", tmp_path / "mine")
@@ -324,7 +324,7 @@ def test_import_never_replaces_a_nets_files_and_its_outputs_are_readable(tiny, t
     assert 'v="footway"' in footway.read_text()
     with pytest.raises(UserError, match="no road a car can drive") as e:
         nets.import_osm(footway, "fw", tmp_path / "out")
-    assert e.value.field == "network.osm_file" and not (tmp_path / "out").exists()
+    assert e.value.field == "OSM" and not (tmp_path / "out").exists()
     umask = os.umask(0o022)
     os.umask(umask)
     for p in (tiny.net_path, tiny.poly_path, tiny.net_path.parent / "routes.toml"):

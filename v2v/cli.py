@@ -52,7 +52,7 @@ def build_parser() -> argparse.ArgumentParser:
     nb.add_argument("names", nargs="*", metavar="NAME", help="nets to build (default: all)")
     nsub.add_parser("list", help="list the shipped nets")
     ni = nsub.add_parser("import-osm", help="turn an OpenStreetMap .osm extract into a net + buildings with heights")
-    ni.add_argument("osm", type=Path, help="the .osm file")
+    ni.add_argument("osm", type=Path, metavar="OSM", help="the .osm file")
     ni.add_argument("--name", required=True, help="name of the new net")
     ni.add_argument("--out", type=Path, default=None, help="folder in which <name>/ is written (default: sumo_nets); <name>/ must be new or empty")
 

@@ -536,9 +536,9 @@ def import_osm(osm_path: str | os.PathLike, name: str, out_root: str | os.PathLi
     osm = Path(osm_path)
     why = not_a_file(osm)
     if why is not None:
-        raise UserError(f"OSM file {osm} {why}", field="network.osm_file", fix="give the path of an .osm extract")
+        raise UserError(f"OSM file {osm} {why}", field="OSM", fix="give the path of an .osm extract")
     if not re.fullmatch(r"[A-Za-z0-9_.-]+", name):
-        raise UserError(f"bad network name {name!r}", field="network.name", fix="use letters, digits, _ . -")
+        raise UserError(f"bad network name {name!r}", field="--name", fix="use letters, digits, _ . -")
     out_dir = (NETS_DIR if out_root is None else Path(out_root)) / name
     # the outermost folder this import creates (out_dir or a parent, e.g. a new --out): a failed
     # import removes it, so it leaves no empty folder behind
@@ -563,7 +563,7 @@ def import_osm(osm_path: str | os.PathLike, name: str, out_root: str | os.PathLi
                 *OSM_OPTIONS, "--output-file", str(tmp_net),
             ],
             "netconvert (OSM import)",
-            "network.osm_file",
+            "OSM",
         )  # fmt: skip
         _run(
             [
@@ -572,13 +572,13 @@ def import_osm(osm_path: str | os.PathLike, name: str, out_root: str | os.PathLi
                 "--output-file", str(tmp_poly),
             ],
             "polyconvert (OSM import)",
-            "network.osm_file",
+            "OSM",
         )  # fmt: skip
         resolve_heights(tmp_poly)
         routes = {"default": longest_route(tmp_net)}
         if not routes["default"]:
             raise UserError(f"{osm} has no road a car can drive (no route of at least one edge)",
-                            field="network.osm_file", fix="give an extract with highway=residential (or larger) ways")
+                            field="OSM", fix="give an extract with highway=residential (or larger) ways")
         publish(tmp_net, net_path)
         publish(tmp_poly, poly_path)
         atomic_write_text(out_dir / "routes.toml", _routes_text(routes, f"Routes for {name}: 'default' = longest "
