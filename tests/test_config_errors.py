@@ -28,6 +28,7 @@ def _error(*overrides: str) -> UserError:
 
 @pytest.mark.parametrize(("override", "fix"), [
     ("duration_s=true", "give a number"),
+    ("duration_s=nan", "give a number (a value <= 86400.0)"),  # (NaN fails every bound: not "use a value <= ...")
     ("duration_s='60'", "give a number (no quotes)"),
     ("clusters.0.vehicles='3'", "give a whole number"),
     ("clusters.0.vehicles=3.0", "give a whole number"),
@@ -79,7 +80,7 @@ def test_shipped_scenarios_load_and_their_resolved_form_reloads(tmp_path, path):
 
 @pytest.mark.parametrize(("override", "fix"), [
     ("clusters.0.depart_s=1e9", "use a value <= 3600"),  # it would step SUMO through the warm-up for hours
-    ("clusters.0.depart_s=nan", "use a value <= 3600"),
+    ("clusters.0.depart_s=nan", "give a number (a value <= 3600"),
     ("network.origin_h_m=1e12", "use a value <= 9000"),
     ("network.origin_h_m=-1000", "use a value >= -500"),
 ])

@@ -66,8 +66,9 @@ def build_parser() -> argparse.ArgumentParser:
     s = sub.add_parser("scenario", help="scenario files")
     ssub = s.add_subparsers(dest="scenario_cmd", required=True, parser_class=_Parser, metavar="{check}")
     sc = ssub.add_parser("check", help="validate a scenario and print it resolved")
-    sc.add_argument("file", type=Path)
-    sc.add_argument("--set", dest="overrides", action="append", default=[], metavar="KEY=VALUE")
+    sc.add_argument("file", type=Path, help="scenario .toml (layered over the built-in default)")
+    sc.add_argument("--set", dest="overrides", action="append", default=[], metavar="KEY=VALUE",
+                    help="override a scenario field, as `v2v run --set` (repeatable; values are TOML)")
 
     from v2v.sweep import add_sweep_parser
 

@@ -236,8 +236,10 @@ class Scenario(_Model):
                 t = c.type_of(i)
                 if t not in self.vehicle_types:
                     at = f"clusters.{ci}.vehicle_type" + (f".{i}" if isinstance(c.vehicle_type, list) else "")
-                    raise ValueError(f"@{at}: vehicle type {t!r} is not defined in [vehicle_types] -- fix: use one of "
-                                     f"{', '.join(map(repr, sorted(self.vehicle_types)))} or define [vehicle_types.{t}]")
+                    known = ", ".join(map(repr, sorted(self.vehicle_types)))
+                    raise ValueError(f"@{at}: vehicle type {t!r} is not defined in [vehicle_types] -- fix: "
+                                     + (f"use one of {known} or define [vehicle_types.{t}]" if known else
+                                        f"define [vehicle_types.{t}] (none is defined)"))
         sol_names = [s.name for s in self.solutions]
         if len(set(sol_names)) != len(sol_names):
             dup = sorted({n for n in sol_names if sol_names.count(n) > 1})
@@ -450,6 +452,9 @@ def _format_validation_error(err: ValidationError, data: dict[str, Any], source:
         own, msg = msg[1:].split(": ", 1)
         loc = f"{loc}.{own}" if loc else own
     got = e.get("input")
+    if isinstance(got, float) and math.isnan(got) and e["type"] in _BOUND_WORDS:  # (NaN fails every bound: the
+        return UserError("is nan, not a number", field=loc or "scenario",  # first one said "should be <= ...")
+                         fix=f"give a number ({_constraint_fix(e).removeprefix('use ')})", where=source)
     got_s = f" (got {got!r})" if not isinstance(got, dict | list) and got is not None and _quotes_not(msg, got) else ""
     return UserError(f"{msg}{got_s}", field=loc or "scenario", fix=fix, where=source)
 
