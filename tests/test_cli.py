@@ -662,3 +662,19 @@ def test_a_file_option_says_what_is_wrong_with_the_path(args, field, says, capsy
     assert main(["scenario", "check", *args]) == 2
     err = [ln for ln in capsys.readouterr().err.splitlines() if ln.strip()]
     assert len(err) == 1 and err[0].startswith(f"v2v: error: {field}: ") and says in err[0], err
+
+
+@pytest.mark.parametrize(("argv", "helps"), [
+    (["run", "s.toml", "--bogus"], "v2v run --help"),
+    (["sweep", "report", "d", "--bogus", "1"], "v2v sweep report --help"),
+    (["sweep", "s.toml", "--bogus"], "v2v sweep run --help"),
+    (["nets", "list", "--x"], "v2v nets list --help"),
+])
+def test_an_unknown_argument_points_at_its_command_s_help(argv, helps, capsys):
+    """argparse's own message for arguments no parser took sent the user to `v2v --help`, which
+    does not list a command's options; nothing runs."""
+    from v2v.cli import main
+
+    assert main(argv) == 2
+    err = capsys.readouterr().err.strip().splitlines()
+    assert len(err) == 1 and err[0].startswith("v2v: error: unrecognized arguments: ") and err[0].endswith(f"see `{helps}`")

@@ -355,7 +355,11 @@ def main(argv: list[str] | None = None) -> int:
     import signal
 
     parser = build_parser()
-    args = parser.parse_args(argv)
+    args, extra = parser.parse_known_args(argv)
+    if extra:  # (argparse's own message sends the user to the top-level help, not the command's)
+        cmd = " ".join(["v2v", args.cmd, *(getattr(args, f"{args.cmd}_cmd", None) or "").split()])
+        print(f"v2v: error: unrecognized arguments: {' '.join(extra)} -- fix: see `{cmd} --help`", file=sys.stderr)
+        return EXIT_USER_ERROR
     from v2v.io.atomic import PUBLISHED
 
     published_before = len(PUBLISHED)
