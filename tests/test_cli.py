@@ -336,8 +336,19 @@ def test_replay_command_points_at_the_recording(tmp_path):
 
 def test_replay_without_a_display_says_to_use_web(tmp_path, monkeypatch, capsys):
     """No display (a server, CI, SSH without X forwarding): one line pointing to --web instead of
-    rerun's multi-line window-system error; --port without --web is refused, not ignored."""
-    (tmp_path / "replay.rrd").write_bytes(b"RRF2" + bytes(60))
+    rerun's multi-line window-system error; --port without --web is refused, not ignored. (A
+    recording cut short says so first, display or not: no viewer could show it.)"""
+    import struct
+
+    (tmp_path / "replay.rrd").write_bytes(b"RRF2" + bytes(60))  # (no footer: cut short)
+    for k in ("DISPLAY", "WAYLAND_DISPLAY", "WAYLAND_SOCKET"):
+        monkeypatch.delenv(k, raising=False)
+    monkeypatch.setattr(sys, "platform", "linux")
+    assert main(["replay", str(tmp_path)]) == 2
+    assert "is not a whole rerun recording" in capsys.readouterr().err
+    # a whole one: 64 bytes of body, then the 32-byte footer that points back at them
+    (tmp_path / "replay.rrd").write_bytes(b"RRF2" + bytes(60) + struct.pack("<QQ", 0, 64) + bytes(4) + b"RRF2FOOT"
+                                          + bytes(4))
     for k in ("DISPLAY", "WAYLAND_DISPLAY", "WAYLAND_SOCKET"):
         monkeypatch.delenv(k, raising=False)
     monkeypatch.setattr(sys, "platform", "linux")

@@ -242,14 +242,14 @@ def _cmd_replay(args) -> int:
     grpc_port = 9876 if args.grpc_port is None else args.grpc_port
     cmd = replay_command(args.run_dir, args.web, port, grpc_port)
     ssh = f"ssh -L {port}:127.0.0.1:{port} -L {grpc_port}:127.0.0.1:{grpc_port}"
+    if not recording_whole(Path(cmd[-1])):
+        raise UserError(f"{cmd[-1]} is not a whole rerun recording (it does not end with rerun's footer: cut short "
+                        "when it was copied?)", field="RUN_DIR",
+                        fix="copy it again, or run the scenario again to write its replay.rrd")  # (before the display)
     if not args.web and sys.platform.startswith("linux") and not any(
             os.environ.get(k) for k in ("DISPLAY", "WAYLAND_DISPLAY", "WAYLAND_SOCKET")):
         raise UserError("no display for the native viewer (DISPLAY and WAYLAND_DISPLAY are not set)", field="replay",
                         fix=f"use --web and open {web_viewer_url(port, grpc_port)} (on a remote machine through {ssh})")
-    if not recording_whole(Path(cmd[-1])):
-        raise UserError(f"{cmd[-1]} is not a whole rerun recording (it does not end with rerun's footer: cut short "
-                        "when it was copied?)", field="RUN_DIR",
-                        fix="copy it again, or run the scenario again to write its replay.rrd")
     if args.web:
         for opt, p in (("--port", port), ("--grpc-port", grpc_port)):
             if _port_in_use(p):
