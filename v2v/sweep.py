@@ -718,8 +718,10 @@ def _open_client(scheduler: str | None, workers: int | None, host: str, n_pendin
         with warnings.catch_warnings(), dask.config.set(config):
             warnings.filterwarnings("ignore", message="Port .* is already in use")  # the scheduler's HTTP endpoint
             try:
+                # (Dask's own logs off below CRITICAL: a run's failure is its row's one-line error, and
+                # a worker whose heartbeat meets the scheduler's close after Ctrl-C logged a traceback)
                 cluster = LocalCluster(n_workers=n, threads_per_worker=1, processes=True, host=host,
-                                       dashboard_address=None, silence_logs=logging.ERROR)
+                                       dashboard_address=None, silence_logs=logging.CRITICAL)
             except Exception as exc:  # noqa: BLE001 - (checked by _check_host; e.g. a port gone since)
                 raise UserError(f"the local cluster did not start on {host!r} ({one_line_error(exc)})",
                                 field="--host", fix=HOST_FIX) from None

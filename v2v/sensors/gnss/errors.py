@@ -194,9 +194,11 @@ class GnssErrorConfig:
     across (std, tables 3-4) with NovAtel OEM4 receivers. Everything common to receivers
     tens of metres apart (clock of the satellite, orbit, ionosphere, troposphere) cancels
     in single differences to < 1 mm here; what is left is receiver clock (estimated),
-    multipath and noise. With the defaults, at 30-60 deg elevation, one receiver's code
-    error is ``sqrt(0.15..0.18^2 + 0.23^2) ~ 0.28-0.29 m`` (multipath, :func:`multipath_sigma_m`,
-    + DLL noise at 46 dB-Hz, :func:`dll_jitter_m`: 0.232 m), a single difference ~0.39-0.42 m.
+    multipath and noise. With the defaults, at 30 / 60 deg elevation (C/N0 42.5 / 47.3 dB-Hz),
+    one receiver's code error is ``sqrt(0.18^2 + 0.35^2) ~ 0.39 m`` / ``sqrt(0.15^2 + 0.20^2) ~
+    0.25 m`` (multipath, :func:`multipath_sigma_m`, + DLL noise, :func:`dll_jitter_m`), a single
+    difference ~0.55 / 0.36 m (SDs of two static receivers over 1200 s: std 0.58 / 0.41 / 0.34 m at
+    20-40 / 40-60 / 60-90 deg).
     Multipath decorrelates in 5 s
     and noise in 0.5 s, so a Doppler-aided filter with a memory of tens of seconds averages
     them down to the paper's 0.1-0.2 m (tables 3-4); what the defaults give is in
