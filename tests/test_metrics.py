@@ -96,9 +96,10 @@ def test_compiled_epoch_errors_equal_the_numpy_definitions():
             cov = P[ipos[k]:ipos[k] + 3, ipos[k]:ipos[k] + 3]
             ref = np.concatenate([true, est, true_vel, x[ivel[k]:ivel[k] + 3],
                                   lead_frame_errors(est, true, az), lead_frame_sigmas(cov, az),
-                                  [cov[0, 0], cov[0, 1], cov[1, 1], nees(est - true, cov)]])
+                                  [cov[0, 0], cov[0, 1], cov[1, 1], cov[0, 2], cov[1, 2], cov[2, 2],
+                                   nees(est - true, cov)]])
             if not ready[k]:  # not initialized: the truth only (true position and velocity)
-                ref[[*range(3, 6), *range(9, 22)]] = np.nan
+                ref[[*range(3, 6), *range(9, 25)]] = np.nan
             np.testing.assert_allclose(out[k], ref, rtol=1e-12, atol=1e-12 * 100.0, equal_nan=True)
 
 

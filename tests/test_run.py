@@ -29,6 +29,32 @@ def short_run(tmp_path_factory):
     return out, res.summary
 
 
+def test_nees_and_lead_frame_sigmas_follow_from_the_epoch_rows(short_run):
+    """epochs.parquet carries the whole ENU position covariance (ee, en, nn, eu, nu, uu), so a
+    user can recompute each row's position NEES, e^T C^-1 e with e = est - true (ENU at the lead),
+    and its along/across sigmas, C rotated into the lead's frame by its azimuth from
+    truth.parquet (along = (sin az, cos az, 0), left = (-cos az, sin az, 0)). (Without eu and nu
+    the NEES could not be recomputed: the up axis correlates with the horizontal ones.)"""
+    out, _ = short_run
+    ep = pd.read_parquet(out / "epochs.parquet")
+    ep = ep[ep.initialized]
+    lead = pd.read_parquet(out / "truth.parquet").query("is_lead")[["t_s", "azimuth_rad"]]
+    ep = ep.merge(lead, on="t_s", how="left", validate="many_to_one")
+    assert len(ep) > 100 and ep.azimuth_rad.notna().all()
+    c = np.stack([np.stack([ep.cov_ee_m2, ep.cov_en_m2, ep.cov_eu_m2], -1),
+                  np.stack([ep.cov_en_m2, ep.cov_nn_m2, ep.cov_nu_m2], -1),
+                  np.stack([ep.cov_eu_m2, ep.cov_nu_m2, ep.cov_uu_m2], -1)], 1)
+    e = ep[["est_e_m", "est_n_m", "est_u_m"]].to_numpy() - ep[["true_e_m", "true_n_m", "true_u_m"]].to_numpy()
+    nees = np.einsum("ki,ki->k", e, np.linalg.solve(c, e[..., None])[..., 0])
+    np.testing.assert_allclose(nees, ep.nees_pos, rtol=1e-9)
+    az = ep.azimuth_rad.to_numpy()
+    along = np.stack([np.sin(az), np.cos(az), np.zeros_like(az)], -1)
+    left = np.stack([-np.cos(az), np.sin(az), np.zeros_like(az)], -1)
+    np.testing.assert_allclose(np.sqrt(np.einsum("ki,kij,kj->k", along, c, along)), ep.sigma_along_m, rtol=1e-9)
+    np.testing.assert_allclose(np.sqrt(np.einsum("ki,kij,kj->k", left, c, left)), ep.sigma_across_m, rtol=1e-9)
+    np.testing.assert_allclose(np.sqrt(ep.cov_uu_m2), ep.sigma_up_m, rtol=1e-12)
+
+
 def test_run_folder_contents(short_run):
     out, summary = short_run
     names = sorted(p.name for p in out.iterdir())

@@ -190,7 +190,8 @@ def epoch_nis_sums(
 # ------------------------------------------------------------------ one output epoch, compiled
 EPOCH_COLUMNS = ("true_e_m", "true_n_m", "true_u_m", "est_e_m", "est_n_m", "est_u_m", "true_ve_mps", "true_vn_mps",
                  "true_vu_mps", "est_ve_mps", "est_vn_mps", "est_vu_mps", "along_err_m", "across_err_m", "up_err_m",
-                 "sigma_along_m", "sigma_across_m", "sigma_up_m", "cov_ee_m2", "cov_en_m2", "cov_nn_m2", "nees_pos")
+                 "sigma_along_m", "sigma_across_m", "sigma_up_m", "cov_ee_m2", "cov_en_m2", "cov_nn_m2", "cov_eu_m2",
+                 "cov_nu_m2", "cov_uu_m2", "nees_pos")
 
 
 _JIT: dict[str, Any] = {"cache": True, "nogil": True, "error_model": "numpy"}
@@ -208,7 +209,8 @@ def epoch_errors(x, P, ipos, ivel, ecef, lead_ecef, rot, vel_enu, lat_lon, lead_
     vehicle's true velocity is given in the ENU frame at its own position) and the estimated
     one, the error in the lead's frame
     (:func:`lead_frame_errors`), the 1-sigma in that frame (:func:`lead_frame_sigmas`), the
-    ENU covariance entries ee, en, nn, and the position NEES ``e^T C^-1 e`` (:func:`nees`).
+    ENU covariance entries ee, en, nn, eu, nu, uu (the position block, so that the NEES can be
+    recomputed from the rows), and the position NEES ``e^T C^-1 e`` (:func:`nees`).
     Where ``ready[k]`` is false (the vehicle is not initialized) only the truth is given: the
     estimate, its errors, sigmas, covariance and NEES are NaN. The same formulas as those functions, summed in their
     order; results agree with the numpy versions to a few ulps (BLAS may fuse multiply-adds).
@@ -220,7 +222,7 @@ def epoch_errors(x, P, ipos, ivel, ecef, lead_ecef, rot, vel_enu, lat_lon, lead_
     baseline over the Earth's radius: 38 urad, ~1 mm/s at 25 m/s, for vehicles 240 m apart.)
     """
     n = ipos.shape[0]
-    out = np.empty((n, 22))
+    out = np.empty((n, 25))
     e = np.empty(3)
     m = np.empty((3, 3))
     c = np.empty((3, 3))
@@ -260,13 +262,16 @@ def epoch_errors(x, P, ipos, ivel, ecef, lead_ecef, rot, vel_enu, lat_lon, lead_
         out[k, 18] = c[0, 0]
         out[k, 19] = c[0, 1]
         out[k, 20] = c[1, 1]
+        out[k, 21] = c[0, 2]
+        out[k, 22] = c[1, 2]
+        out[k, 23] = c[2, 2]
         if ready[k]:
-            out[k, 21] = _nees3(c, e)
+            out[k, 24] = _nees3(c, e)
         else:  # no estimate yet: its state is the filter's placeholder, not a number to score
             for i in range(3):
                 out[k, 3 + i] = np.nan
                 out[k, 9 + i] = np.nan
-            for i in range(12, 22):
+            for i in range(12, 25):
                 out[k, i] = np.nan
     return out
 
