@@ -804,7 +804,7 @@ def _run_keys_on_worker(keys: list[str], dask_worker: Any = None) -> list[tuple[
             if (ts := st.tasks.get(k)) is not None and ts.state not in ("memory", "error", "released", "forgotten")]
 
 
-def _await_started_runs(client: Any, futures: list[Any], stopped_by: BaseException | None, quiet: bool) -> list[str]:
+def _await_started_runs(client: Any, futures: list[Any], stopped_by: BaseException | None) -> list[str]:
     """After a remote cluster's sweep stopped early (its futures cancelled): wait until its
     workers hold none of the study's runs, so that the table written next lists every run
     that completes. Dask cannot stop a task once its function runs: such a run completes and
@@ -1005,7 +1005,7 @@ def _run_study_locked(study: Study, out: Path, scheduler: str | None, workers: i
                 # for those runs (Ctrl-C) so that the table lists them; the local cluster's
                 # workers are closed instead, and what they were writing is removed.
                 if cluster is None:
-                    left = _await_started_runs(client, futures, stopped_by, quiet)
+                    left = _await_started_runs(client, futures, stopped_by)  # (said also with --quiet: why it waits)
                 client.close()
                 if cluster is not None:
                     cluster.close()
