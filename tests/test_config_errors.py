@@ -488,3 +488,13 @@ def test_a_named_route_and_route_edges_together_are_refused():
     """Both given: the listed edges silently won."""
     err = _error('network.route_edges=["J-NW"]', 'network.route="visit"')
     assert err.field == "network.route" and err.fix.startswith("give one"), err.one_line()
+
+
+@pytest.mark.parametrize("key", ["clusters", "solutions", "faults"])
+def test_a_list_of_tables_given_a_value_gets_an_example_that_loads(key):
+    """`clusters = 3`: the fix was "give a list, e.g. [0, 1]", itself wrong there. It now gives
+    [[key]] tables with an example, and the example is a valid value."""
+    err = _error(f"{key}=3")
+    assert err.field == key and err.fix.startswith(f"give [[{key}]] tables, e.g. "), err.one_line()
+    example = err.fix.split("e.g. ", 1)[1]
+    assert len(getattr(load_scenario(None, [example]), key)) == 1

@@ -505,10 +505,20 @@ _TYPE_FIXES = {"int_parsing": "give a whole number", "int_from_float": "give a w
                "dict_type": "give a table {{key = value, ...}}, or set one of its keys (e.g. --set {loc}.KEY=VALUE)"}
 
 
+# lists of tables: "give a list, e.g. [0, 1]" would mislead there
+_TABLE_LIST_FIXES = {
+    "clusters": 'give [[clusters]] tables, e.g. clusters = [{name = "c1", vehicles = 3}]',
+    "solutions": 'give [[solutions]] tables, e.g. solutions = [{name = "GPS", sensors = ["gnss"]}]',
+    "faults": 'give [[faults]] tables, e.g. faults = [{kind = "gnss_outage", start_s = 10.0, duration_s = 5.0}]',
+}
+
+
 def _constraint_fix(e: Any) -> str:
     """The fix part of a pydantic error: the bound or the expected type, when pydantic says it."""
     ctx = e.get("ctx") or {}
     kind = e.get("type", "")
+    if kind == "list_type" and len(e.get("loc", ())) == 1 and e["loc"][0] in _TABLE_LIST_FIXES:
+        return _TABLE_LIST_FIXES[e["loc"][0]]
     if kind in _BOUND_WORDS:
         key, fmt = _BOUND_WORDS[kind]
         if key in ctx:
