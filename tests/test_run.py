@@ -382,6 +382,49 @@ def test_other_seed_changes_measurements(short_run, tmp_path):
     assert dict(e3.dtypes) == {c: e1.dtypes[c] for c in e3.columns}
 
 
+def test_injected_error_columns_are_zero_where_no_fault_acted_and_the_components_add_up(tmp_path):
+    """A pseudorange blunder on one vehicle in a window and a clock jump on another: their
+    columns, err_fault_m and err_clock_jump_m, are 0 on every other pseudorange row (they were NaN
+    there), so on every pseudorange and UWB row the err_* components add up to value - true_value
+    (the README's rule), and only bearing rows, where no component applies, have them NaN."""
+    sc = load_scenario(None, ["duration_s=6.0", 'solutions=[{name="G", sensors=["gnss"]}]',
+                              'faults=[{kind="pr_blunder", start_s=2.0, duration_s=2.0, size_m=40.0, vehicles=["c1.1"]},'
+                              ' {kind="clock_jump", start_s=3.0, vehicles=["c1.2"]}]'])
+    run_scenario(sc, tmp_path / "r", quiet=True, replay=False, save_measurements=True)
+    m = pd.read_parquet(tmp_path / "r" / "measurements.parquet")
+    pr = m[m.type == "pseudorange"]
+    hit = (pr.vehicle == "c1.1") & (pr.t_s >= 2.0 - 1e-9) & (pr.t_s < 4.0 - 1e-9)
+    assert (pr.err_fault_m[hit] == 40.0).all() and (pr.err_fault_m[~hit] == 0.0).all()
+    jumped = (pr.vehicle == "c1.2") & (pr.t_s >= 3.0 - 1e-9)
+    assert (pr.err_clock_jump_m[jumped] == 299792.458).all() and (pr.err_clock_jump_m[~jumped] == 0.0).all()
+    err = [c for c in m.columns if c.startswith("err_")]
+    for kind in ("pseudorange", "uwb"):
+        rows = m[m.type == kind]
+        total = rows[err].sum(axis=1, min_count=1, skipna=True)
+        np.testing.assert_allclose(total, rows.value - rows.true_value, atol=1e-6)
+    assert m.loc[m.type == "bearing", ["err_fault_m", "err_clock_jump_m"]].isna().all().all()
+
+
+@pytest.mark.parametrize("vehicles", ['["c1.2"]', '"all"'])
+def test_a_message_loss_burst_counts_the_messages_it_dropped_and_spares_the_lead(tmp_path, vehicles):
+    """The messages a message_loss burst drops are the ones its run did not send: faults_injected
+    counts exactly the difference of exchange.sent against the same run without it (it counted
+    nothing, and the run's note called the fault idle). The lead's own measurements reach its
+    filter on board, not over a V2V link: with vehicles = "all" they are not dropped (they were,
+    and the filter lost every GNSS epoch), so the count is still the difference."""
+    base = ["duration_s=12.0", 'solutions=[{name="G", sensors=["gnss", "uwb", "bearing"]}]']
+    clean = run_scenario(load_scenario(None, base), tmp_path / "a", quiet=True, replay=False).summary
+    sc = load_scenario(None, [*base, f'faults=[{{kind="message_loss", start_s=4.0, duration_s=3.0, vehicles={vehicles}}}]'])
+    hit = run_scenario(sc, tmp_path / "b", quiet=True, replay=False).summary
+    n = hit["faults_injected"]["0:message_loss"]
+    assert n > 0 and n == clean["exchange"]["sent"] - hit["exchange"]["sent"]
+    assert "changed no measurement" not in hit.get("note", "")
+    ep = pd.read_parquet(tmp_path / "b" / "epochs.parquet")
+    window = ep[(ep.t_s > 4.5) & (ep.t_s < 6.9)]
+    assert (window.groupby("vehicle").used_pr.sum() == 0).all() == (vehicles == '"all"')  # (c1.1 still heard)
+    assert window[window.vehicle == "c1.2"].used_pr.sum() == 0
+
+
 def test_vehicle_leaving_and_rejoining_the_cluster(tmp_path):
     """A vehicle that leaves (no GNSS, UWB, bearing or message for 15 s) is dropped from the
     filter after LEAVE_AFTER_S of silence and re-initialized from its first GNSS epoch back."""

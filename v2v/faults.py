@@ -299,6 +299,17 @@ def apply_bearing_faults(b: Bearings | None, faults: list[FaultSection], rng: np
     return replace(b, bearing_rad=val).take(idx)
 
 
+def dropping_fault(faults: list[FaultSection], sender: str, t_s: float, lead: str | None = None) -> int | None:
+    """The index of the first fault that silences ``sender``'s message at ``t_s``, or None: a
+    vehicle-leaves fault, or a message-loss burst (a V2V link's: not the ``lead``'s own
+    measurements, which reach its filter on board)."""
+    for i, f in enumerate(faults):
+        if (f.kind == "vehicle_leaves" or (f.kind == "message_loss" and sender != lead)) and f.targets(sender) \
+                and f.active(t_s):
+            return i
+    return None
+
+
 def message_dropped(faults: list[FaultSection], sender: str, t_s: float) -> bool:
     """True when a message-loss burst or a vehicle-leaves fault silences ``sender`` at ``t_s``."""
-    return any(f.kind in ("message_loss", "vehicle_leaves") and f.targets(sender) and f.active(t_s) for f in faults)
+    return dropping_fault(faults, sender, t_s) is not None

@@ -417,7 +417,7 @@ def _run_scenario(scenario: Scenario, out_dir: Path, *, quiet: bool, replay: boo
                 apply_bearing_faults,
                 apply_gnss_faults,
                 apply_uwb_faults,
-                message_dropped,
+                dropping_fault,
             )
 
             fault_log = FaultLog()
@@ -467,8 +467,11 @@ def _run_scenario(scenario: Scenario, out_dir: Path, *, quiet: bool, replay: boo
                 if scenario.faults:
                     fault_list = list(scenario.faults)
 
-                    def dropped(sender: str, t: float, _f=fault_list) -> bool:
-                        return message_dropped(_f, sender, t)
+                    def dropped(sender: str, t: float, _f=fault_list, _lead=lead, _log=fault_log) -> bool:
+                        i = dropping_fault(_f, sender, t, _lead)
+                        if i is not None and _f[i].kind == "message_loss" and _log is not None:
+                            _log.add(i, "message_loss")  # (a vehicle_leaves' removals are counted at its sensors)
+                        return i is not None
 
                 bearing_vehicles = members if scenario.sensors.bearing.measuring == "all" else [
                     v for v in scenario.sensors.bearing.measuring if v in members]
@@ -745,8 +748,7 @@ def _run_note(scenario: Scenario, t_end: float, fault_log: Any, sol_stats: dict[
         notes.append(f"{len(never)} fault(s) start at or after the run's end (duration_s = {scenario.duration_s:g} s) "
                      f"and were never injected: {', '.join(never)}")
     idle = [f"faults.{i} ({f.kind})" for i, f in enumerate(scenario.faults)
-            if f.kind != "message_loss"  # (dropped by the exchange, not counted in the fault log)
-            and f.start_s < scenario.duration_s - 1e-9 and fault_log is not None
+            if f.start_s < scenario.duration_s - 1e-9 and fault_log is not None
             and not fault_log.counts.get(f"{i}:{f.kind}")]
     if idle:
         notes.append(f"{', '.join(idle)} changed no measurement (its PRNs not in view, its vehicles without such "

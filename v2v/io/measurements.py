@@ -50,4 +50,13 @@ def measurements_table(gnss_epochs: Sequence[tuple[float, dict[str, GnssEpoch]]]
         }))
     if not parts:
         return pd.DataFrame({"t_s": [], "type": [], "vehicle": [], "other": [], "prn": [], "value": [], "true_value": [], "los": []})
-    return pd.concat(parts, ignore_index=True).sort_values(["t_s", "type", "vehicle"], kind="stable", ignore_index=True)
+    df = pd.concat(parts, ignore_index=True)
+    # the injected components exist only on the epochs a fault touched: 0 on the other rows of the
+    # types they apply to (so that the components add up to value - true_value on every row)
+    for col, types in _INJECTED.items():
+        if col in df.columns:
+            df.loc[df["type"].isin(types) & df[col].isna(), col] = 0.0
+    return df.sort_values(["t_s", "type", "vehicle"], kind="stable", ignore_index=True)
+
+
+_INJECTED = {"err_fault_m": ("pseudorange", "uwb"), "err_clock_jump_m": ("pseudorange",)}
