@@ -12,7 +12,7 @@ from v2v.faults import (
     apply_bearing_faults,
     apply_gnss_faults,
     apply_uwb_faults,
-    message_dropped,
+    dropping_fault,
 )
 from v2v.sensors.measurements import GPS_L1_WAVELENGTH_M, Bearings, GnssEpoch, UwbRanges
 
@@ -100,8 +100,8 @@ def test_bearing_outage_and_message_bursts():
                                np.random.default_rng(0), FaultLog())
     assert list(out.t_s) == [x for x in t if not 5.0 <= x < 10.0]
     fs = [FaultSection(kind="message_loss", start_s=1.0, duration_s=2.0, vehicles=["c1.2"])]
-    assert message_dropped(fs, "c1.2", 1.5) and not message_dropped(fs, "c1.2", 3.0)
-    assert not message_dropped(fs, "c1.1", 1.5)
+    assert dropping_fault(fs, "c1.2", 1.5) == 0 and dropping_fault(fs, "c1.2", 3.0) is None
+    assert dropping_fault(fs, "c1.1", 1.5) is None
 
 
 def _sky_in_view(sc) -> set[int]:

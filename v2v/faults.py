@@ -309,7 +309,3 @@ def dropping_fault(faults: list[FaultSection], sender: str, t_s: float, lead: st
             return i
     return None
 
-
-def message_dropped(faults: list[FaultSection], sender: str, t_s: float) -> bool:
-    """True when a message-loss burst or a vehicle-leaves fault silences ``sender`` at ``t_s``."""
-    return dropping_fault(faults, sender, t_s) is not None

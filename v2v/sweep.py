@@ -215,7 +215,7 @@ def load_study(path: str | Path) -> Study:
     before SUMO starts (:func:`v2v.run.check_scenario`: network, sky, faults' PRNs); raises
     :class:`UserError`."""
 
-    from v2v.config.scenario import load_scenario, read_toml
+    from v2v.config.scenario import key_parts, load_scenario, read_toml
     from v2v.run import check_scenario
 
     p = Path(path)
@@ -264,11 +264,11 @@ def load_study(path: str | Path) -> Study:
         return "grid" if k in grid else "set"
 
     for b in [*fixed, *grid]:  # (what apply_override would refuse naming --set, named here as the study's key)
-        if not all(part.strip() for part in b.split(".")):
+        if not all(key_parts(b)):
             raise UserError(f"key {b!r} has an empty part" if b.strip() else "an empty key", field=f"{where(b)}.{b}",
                             fix='one "." between the parts of a quoted dotted key, e.g. "clusters.0.vehicles"')
     for b in [*fixed, *grid]:  # a path inside another: one value would silently override the other
-        parts = b.split(".")
+        parts = key_parts(b)
         for a in (".".join(parts[:i]) for i in range(1, len(parts))):
             if a in fixed or a in grid:
                 raise UserError(f"{b} ([{where(b)}]) is inside {a} ([{where(a)}]): one would silently override "
@@ -449,7 +449,7 @@ def _runs_table(study: Study, rows: dict[str, dict[str, Any]]):
     return df.iloc[:0].copy() if empty else df
 
 
-def _import_table_modules() -> threading.Thread:
+def _import_table_modules() -> None:
     """Import pandas and pyarrow's Parquet writer on a thread of their own (started as the
     study starts; joined by the first table write's own imports, which wait for it). A signal
     interrupts only the main thread: a Ctrl-C in the ~0.3 s of pandas' first import left it
@@ -459,9 +459,7 @@ def _import_table_modules() -> threading.Thread:
         import pandas  # noqa: F401
         import pyarrow.parquet  # noqa: F401
 
-    t = threading.Thread(target=load, name="v2v-sweep-imports", daemon=True)
-    t.start()
-    return t
+    threading.Thread(target=load, name="v2v-sweep-imports", daemon=True).start()
 
 
 def _write_runs(out: Path, study: Study, rows: dict[str, dict[str, Any]]):

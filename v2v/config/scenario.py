@@ -34,23 +34,20 @@ from pydantic import (
 )
 
 from v2v.config.sections import (
+    MAX_NAME_BYTES,
     NOMINAL_SATELLITES,
     ExchangeSection,
     SensorsSection,
     SolutionSection,
     a_path,
+    has_control_chars,
     paper_solutions,
 )
 from v2v.errors import UserError, not_a_file
 from v2v.faults import FaultSection
 
 DEFAULT_SCENARIO_PATH = Path(__file__).with_name("default.toml")
-MAX_NAME_BYTES = 100  # a scenario's name names its run folder (and, with 18 more, the hidden staging folder)
 BACKGROUND_PREFIX = "bg"  # background vehicles are bg.0, bg.1, ...: no cluster may be called that
-
-
-def _control_chars(v: str) -> bool:
-    return any(ord(ch) < 32 or ord(ch) == 127 for ch in v)
 
 
 class _Model(BaseModel):
@@ -139,7 +136,7 @@ class ClusterConfig(_Model):
     def _name_is_a_vehicle_id_prefix(cls, v: str) -> str:
         # its vehicles are <name>.0, <name>.1, ... in SUMO, the outputs and the replay's entity paths;
         # a multi-cluster run keys its solutions <cluster>/<solution>
-        if not v.strip() or "/" in v or _control_chars(v):
+        if not v.strip() or "/" in v or has_control_chars(v):
             raise ValueError("must be a non-empty name without '/' or control characters (it prefixes its vehicle ids)"
                              ' -- fix: give a name such as "c1"')
         if v == BACKGROUND_PREFIX:
@@ -203,7 +200,7 @@ class Scenario(_Model):
     @classmethod
     def _name_is_a_folder_name(cls, v: str) -> str:
         # the default run folder is runs/<name>: "", ".", ".." or a path would put it elsewhere
-        if not v.strip() or v in (".", "..") or "/" in v or "\\" in v or _control_chars(v):
+        if not v.strip() or v in (".", "..") or "/" in v or "\\" in v or has_control_chars(v):
             raise ValueError("must be a non-empty name without '/' or control characters (it names the run folder"
                              ' runs/<name>) -- fix: e.g. name = "urban_canyon"')
         if len(v.encode()) > MAX_NAME_BYTES:
@@ -355,10 +352,11 @@ def _split_assignment(assignment: str) -> tuple[str, str]:
             quoted = not quoted
         elif ch == "=" and not quoted:
             return assignment[:i], assignment[i + 1:]
-    return assignment.split("=", 1)[0], assignment.split("=", 1)[1]
+    path, _, text = assignment.partition("=")
+    return path, text
 
 
-def _key_parts(path: str) -> list[str]:
+def key_parts(path: str) -> list[str]:
     """A dotted key path's parts; a part in double quotes may hold dots, as in TOML
     (``sensors.uwb.vehicle_profiles."c1.2"``, the way errors name such a field)."""
     parts: list[str] = []
@@ -381,7 +379,7 @@ def apply_override(data: dict[str, Any], assignment: str) -> dict[str, Any]:
     if "=" not in assignment:
         raise UserError(f"override {assignment!r} is not key=value", field="--set", fix="write e.g. --set seed=3")
     path, text = _split_assignment(assignment)
-    keys = _key_parts(path)
+    keys = key_parts(path)
     if keys == [""]:
         raise UserError(f"override {assignment!r} has an empty key", field="--set", fix="write e.g. --set seed=3")
     if not all(k.strip() for k in keys):  # "network..name": not silently network.name
@@ -585,6 +583,15 @@ def load_default_dict() -> dict[str, Any]:
         return tomllib.load(f)
 
 
+def _filled_clusters(data: dict[str, Any], base_cluster: dict[str, Any]) -> dict[str, Any]:
+    """``data`` with each cluster filled from the default cluster's values: a cluster list (a
+    file's or a --set's) replaces the default list whole, and a user writes just `name` and
+    `vehicles`."""
+    if isinstance(data.get("clusters"), list):
+        data["clusters"] = [deep_merge(base_cluster, c) if isinstance(c, dict) else c for c in data["clusters"]]
+    return data
+
+
 def load_scenario(path: str | Path | None = None, overrides: list[str] | tuple[str, ...] = (), *,
                   overrides_from: str = "the command line's --set / --seed") -> Scenario:
     """Load, layer and validate a scenario. ``path=None`` gives the built-in default.
@@ -594,25 +601,19 @@ def load_scenario(path: str | Path | None = None, overrides: list[str] | tuple[s
     Raises :class:`UserError` (one line, naming the field) for every user mistake.
     """
     data = load_default_dict()
+    base_cluster = data["clusters"][0]
     source = "the default scenario"
     if path is not None:
         p = Path(path)
         user = read_toml(p, field="SCENARIO", what="scenario file")
-        # A user's cluster list replaces the default list whole; fill each cluster from the
-        # default cluster's values so a user can write just `name` and `vehicles`.
-        if "clusters" in user and isinstance(user["clusters"], list):
-            base_cluster = data["clusters"][0]
-            user["clusters"] = [deep_merge(base_cluster, c) if isinstance(c, dict) else c for c in user["clusters"]]
-        data = deep_merge(data, user)
+        data = _filled_clusters(deep_merge(data, user), base_cluster)  # (so that --set can reach their fields)
         source = str(p)
     if "solutions" not in data:
         data["solutions"] = [sol.model_dump(mode="json") for sol in paper_solutions()]
     for ov in overrides:
         data = apply_override(data, ov)
-    if overrides and isinstance(data.get("clusters"), list):  # (clusters a --set gave, filled as a file's are)
-        base_cluster = load_default_dict()["clusters"][0]
-        data["clusters"] = [deep_merge(base_cluster, c) if isinstance(c, dict) else c for c in data["clusters"]]
     if overrides:
+        data = _filled_clusters(data, base_cluster)  # (a --set clusters=[...] list)
         source += f" with {overrides_from}"
     try:
         return Scenario.model_validate(data)

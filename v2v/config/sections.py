@@ -140,7 +140,13 @@ class SensorsSection(_Model):
 
 
 SENSOR_NAMES = ("gnss", "uwb", "bearing")
-SOLUTION_NAME_BYTES = 100
+# a scenario's name names its run folder (and, with 18 more, the hidden staging folder); a
+# solution's labels rows and columns: both at most this many UTF-8 bytes
+MAX_NAME_BYTES = 100
+
+
+def has_control_chars(v: str) -> bool:
+    return any(ord(ch) < 32 or ord(ch) == 127 for ch in v)
 
 
 class ExchangeSection(_Model):
@@ -279,11 +285,11 @@ class SolutionSection(_Model):
     @classmethod
     def _name_is_a_label(cls, v: str) -> str:
         # the name labels the table's rows, summary.json's statistics and runs.parquet's columns
-        if not v.strip() or any(ord(ch) < 32 or ord(ch) == 127 for ch in v):
+        if not v.strip() or has_control_chars(v):
             raise ValueError('must be a non-empty name without control characters (it labels the table\'s rows and the '
                              'statistics) -- fix: e.g. name = "GPS+UWB"')
-        if len(v.encode()) > SOLUTION_NAME_BYTES:
-            raise ValueError(f"is {len(v.encode())} bytes long -- fix: give a name of at most {SOLUTION_NAME_BYTES} "
+        if len(v.encode()) > MAX_NAME_BYTES:
+            raise ValueError(f"is {len(v.encode())} bytes long -- fix: give a name of at most {MAX_NAME_BYTES} "
                              "characters (UTF-8 bytes)")
         return v
 
