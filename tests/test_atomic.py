@@ -164,3 +164,25 @@ def test_an_interrupt_while_a_run_replaces_the_previous_one_leaves_a_whole_folde
         other.join()
     assert len(calls) == 2 and (final / "summary.json").read_text() == '"new"'
     assert final.resolve() in atomic.PUBLISHED  # what the command line reports as a complete run
+
+
+def test_a_set_of_files_is_replaced_whole_or_not_at_all(tmp_path):
+    """atomic_write_all: a writer that fails (here the second of three) leaves the earlier
+    versions of all three files, and no temporary file; when all succeed all are new."""
+    from v2v.io.atomic import atomic_write_all
+
+    paths = [tmp_path / n for n in ("a.csv", "b.md", "c.png")]
+    for p in paths:
+        p.write_text("old")
+
+    def fail(p):
+        p.write_text("half")
+        raise OSError(28, "No space left on device")
+
+    with pytest.raises(OSError):
+        atomic_write_all([(paths[0], lambda p: p.write_text("new")), (paths[1], fail),
+                          (paths[2], lambda p: p.write_text("new"))])
+    assert [p.read_text() for p in paths] == ["old"] * 3
+    assert sorted(p.name for p in tmp_path.iterdir()) == ["a.csv", "b.md", "c.png"]
+    atomic_write_all([(p, lambda q: q.write_text("new")) for p in paths])
+    assert [p.read_text() for p in paths] == ["new"] * 3

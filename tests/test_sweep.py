@@ -869,6 +869,35 @@ def test_report_refuses_corrupt_empty_or_unwritable(tmp_path, capsys):
     assert not (d / "report.md").exists()
 
 
+def test_report_that_cannot_be_written_says_so_and_leaves_the_earlier_report_whole(tmp_path, capsys):
+    """A report.png that is a folder (the last of the three files) made the report write
+    report.csv and report.md, then end in a traceback beside the old figure. Now nothing
+    is replaced and the error is one line naming --out."""
+    runs = _synthetic_runs()
+    runs.to_parquet(tmp_path / "runs.parquet")
+    (tmp_path / "sweep.json").write_text(json.dumps({"grid_columns": ["n_vehicles"]}))
+    out = tmp_path / "rep"
+    out.mkdir()
+    for name in ("report.csv", "report.md"):
+        (out / name).write_text("earlier report\n")
+    (out / "report.png").mkdir()
+    assert _cli(["sweep", "report", str(tmp_path), "--out", str(out)]) == 2
+    assert "cannot write the report" in _one_error_line(capsys, "--out")
+    assert [(out / n).read_text() for n in ("report.csv", "report.md")] == ["earlier report\n"] * 2
+    assert sorted(p.name for p in out.iterdir()) == ["report.csv", "report.md", "report.png"]  # no temporary left
+
+
+def test_report_refuses_a_table_without_a_grid_column_of_sweep_json(tmp_path, capsys):
+    """Grouping without one of sweep.json's grid columns would pool the runs of different grid
+    values (the seeds of two grid points averaged as one): refused in one line."""
+    runs = _synthetic_runs().drop(columns=["n_vehicles"])
+    runs.to_parquet(tmp_path / "runs.parquet")
+    (tmp_path / "sweep.json").write_text(json.dumps({"grid_columns": ["n_vehicles"]}))
+    assert _cli(["sweep", "report", str(tmp_path)]) == 2
+    assert "no column 'n_vehicles'" in _one_error_line(capsys, "DIR")
+    assert not (tmp_path / "report.md").exists()
+
+
 @pytest.mark.sumo
 def test_sweep_whose_runs_fail_exits_1_naming_the_first_error(tmp_path, capsys):
     """Failed runs do not stop the study, but the command's status says so (1, with the first

@@ -1045,13 +1045,23 @@ def t_interval_half_width(values, confidence: float = 0.95) -> tuple[int, float,
 
 
 def _grid_columns(runs_dir: Path, df) -> list[str]:
+    """The grid columns of ``runs.parquet``: those ``sweep.json`` lists, or (without a readable
+    ``sweep.json``) the columns between ``run_id`` and ``seed``. A listed column the table
+    lacks is refused: grouping without it would pool the runs of different grid values."""
     try:
         with (runs_dir / SWEEP_FILE).open(encoding="utf-8") as f:
             cols = json.load(f)["grid_columns"]
-        return [c for c in cols if c in df.columns]
-    except (OSError, ValueError, KeyError):
+        if not isinstance(cols, list) or not all(isinstance(c, str) for c in cols):
+            raise ValueError("grid_columns is not a list of names")
+    except (OSError, ValueError, KeyError, TypeError):
         cols = list(df.columns)
-        return cols[cols.index("run_id") + 1: cols.index("seed")] if "seed" in cols else []
+        return cols[cols.index("run_id") + 1: cols.index("seed")] if "run_id" in cols and "seed" in cols else []
+    missing = [c for c in cols if c not in df.columns]
+    if missing:
+        raise UserError(f"{runs_dir / RUNS_FILE} has no column {missing[0]!r}, a grid column of {SWEEP_FILE}: "
+                        "its runs cannot be told apart", field="DIR",
+                        fix="rerun the sweep into DIR (finished runs are kept and re-listed)")
+    return cols
 
 
 def _with_vehicle_means(df):
@@ -1132,7 +1142,11 @@ def write_report(sweep_dir: str | Path, out_dir: str | Path | None = None) -> Re
     except (OSError, ValueError) as exc:  # (pyarrow's ArrowInvalid is a ValueError)
         raise UserError(f"{runs_file} is not readable Parquet ({one_line_error(exc)})", field="DIR",
                         fix="rerun the sweep into DIR (finished runs are kept and re-listed)") from None
-    if df.empty or "status" not in df or not (df["status"] == "ok").any():
+    lacking = [c for c in ("run_id", "status") if c not in df.columns]
+    if lacking:
+        raise UserError(f"{runs_file} has no column {lacking[0]!r}: it is not a `v2v sweep` table", field="DIR",
+                        fix="rerun the sweep into DIR (finished runs are kept and re-listed)")
+    if df.empty or not (df["status"] == "ok").any():
         n = len(df)
         errors = df["error"].astype(str) if "error" in df else pd.Series([], dtype=str)
         first = next((e for e in errors if e), "")
@@ -1145,13 +1159,20 @@ def write_report(sweep_dir: str | Path, out_dir: str | Path | None = None) -> Re
     df, solutions = _with_vehicle_means(df)
     agg = aggregate_runs(df, grid_cols)
 
-    from v2v.io.atomic import atomic_write, atomic_write_text
+    from v2v.io.atomic import atomic_write_all
 
     csv_path, md_path, png_path = out / "report.csv", out / "report.md", out / "report.png"
     labels = _figure_labels(df, agg, grid_cols, solutions)
-    atomic_write(csv_path, lambda p: agg.to_csv(p, index=False))
-    atomic_write_text(md_path, _report_markdown(src, df, agg, grid_cols, solutions, labels))
-    atomic_write(png_path, lambda p: _report_figure(agg, labels, p))
+    markdown = _report_markdown(src, df, agg, grid_cols, solutions, labels)
+    try:  # the three as one set: a failed write leaves the folder's earlier report whole
+        atomic_write_all([(csv_path, lambda p: agg.to_csv(p, index=False)),
+                          (md_path, lambda p: p.write_text(markdown, encoding="utf-8")),
+                          (png_path, lambda p: _report_figure(agg, labels, p))])
+    except OSError as exc:
+        raise UserError(f"cannot write the report into {out} ({exc.strerror or one_line_error(exc)})",
+                        field="--out" if out_dir is not None else "DIR",
+                        fix="give --out a folder that can be written (report.csv, report.md and report.png "
+                            "must not be folders)") from None
     return ReportResult(markdown=md_path, csv=csv_path, figure=png_path, table=agg)
 
 
@@ -1184,7 +1205,7 @@ def _report_markdown(src: Path, df, agg, grid_cols: list[str], solutions: list[s
         ok = g[g["status"] == "ok"]
         n_oks.append(len(ok))
         runs_rows.append([*key, len(ok), len(g) - len(ok), _fmt(*_lookup(agg, grid_cols, key, "simulated_s"), len(ok)),
-                          f"{ok['wall_s'].mean():.2f}" if len(ok) else "-"])
+                          f"{ok['wall_s'].mean():.2f}" if len(ok) and "wall_s" in ok else "-"])
     lines += ["## Runs", ""]
     lines += _md_table([*grid_cols, "ok", "failed", "simulated_s", "mean wall_s"], runs_rows)
     lines.append("")
@@ -1210,7 +1231,8 @@ def _report_markdown(src: Path, df, agg, grid_cols: list[str], solutions: list[s
     failed = df[df["status"] != "ok"]
     if len(failed):
         lines += ["", "## Failed runs", ""]
-        lines += _md_table(["run_id", "error"], [[r.run_id, str(r.error).replace("|", "/")] for r in failed.head(50).itertuples()])
+        lines += _md_table(["run_id", "error"], [[r.run_id, str(getattr(r, "error", "")).replace("|", "/")]
+                                                  for r in failed.head(50).itertuples()])
         if len(failed) > 50:
             lines.append(f"... and {len(failed) - 50} more (see runs.parquet)")
     noted = df[(df["status"] == "ok") & (df["note"].fillna("") != "")] if "note" in df else df.iloc[:0]

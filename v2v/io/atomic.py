@@ -6,6 +6,7 @@ A reader (or a crashed run) never sees a half-written file that looks whole.
 from __future__ import annotations
 
 import contextlib
+import errno
 import json
 import os
 import shutil
@@ -50,6 +51,33 @@ def atomic_write(path: Path, writer: Callable[[Path], None]) -> None:
         publish(tmp_path, path)
     except BaseException:
         tmp_path.unlink(missing_ok=True)
+        raise
+
+
+def atomic_write_all(writes: list[tuple[Path, Callable[[Path], None]]]) -> None:
+    """:func:`atomic_write` of several files as one set: every ``writer(tmp_path)`` runs on
+    a temporary file beside its path first, and only when all have succeeded are they
+    renamed into place, so a failed writer (or a path that is a folder) leaves every path
+    as it was, not some files new beside old ones. (Each rename is atomic; the set's renames
+    follow each other.)"""
+    for path, _ in writes:  # (a rename cannot replace a folder: found before any file is replaced)
+        if Path(path).is_dir():
+            raise IsADirectoryError(errno.EISDIR, "Is a directory", str(path))
+    done: list[tuple[Path, Path]] = []
+    try:
+        for path, writer in writes:
+            path = Path(path)
+            fd, tmp = tempfile.mkstemp(prefix=f".{path.name}.", suffix=".tmp", dir=path.parent)
+            os.close(fd)
+            done.append((Path(tmp), path))
+            writer(Path(tmp))
+        while done:
+            tmp_path, path = done[0]
+            publish(tmp_path, path)
+            done.pop(0)
+    except BaseException:
+        for tmp_path, _ in done:
+            tmp_path.unlink(missing_ok=True)
         raise
 
 
