@@ -54,7 +54,7 @@ def atomic_write(path: Path, writer: Callable[[Path], None]) -> None:
         raise
 
 
-def atomic_write_all(writes: list[tuple[Path, Callable[[Path], None]]]) -> None:
+def atomic_write_all(writes: list[tuple[Path, Callable[[Path], object]]]) -> None:
     """:func:`atomic_write` of several files as one set: every ``writer(tmp_path)`` runs on
     a temporary file beside its path first, and only when all have succeeded are they
     renamed into place, so a failed writer (or a path that is a folder) leaves every path
