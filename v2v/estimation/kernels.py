@@ -103,7 +103,11 @@ def scalar_update(x, P, idx, val, nnz, nu, r_var, gate_k, test):
 
 @njit(**_JIT)
 def _second_order(hess, pd):
-    """(tr(H2 P_d) / 2, tr((H2 P_d)^2) / 2): second-order mean and variance (Gelb 1974)."""
+    """(tr(H2 P_d) / 2, tr((H2 P_d)^2) / 2): second-order mean and variance (Gelb 1974).
+
+    For a UWB range ``hess`` is the Hessian of |d| alone, also with bias / scale states
+    (h = (1 + s)|d| + b): the factor 1 + s and the cross term u . P[d, s] are left out
+    (~1 % of the range sigma; see :meth:`v2v.estimation.filter.ClusterFilterBase._uwb_sequence`)."""
     m = np.empty((3, 3))
     for i in range(3):
         for j in range(3):
