@@ -194,6 +194,10 @@ def test_update_log_statistics_and_columns_match_the_records():
     assert cols["nis"] == [i.nis for i, _ in all_infos]
     assert cols["faulty"] == [f for _, f in all_infos]
     assert log.n == len(all_infos)
+    # closing deletes the spill file (its descriptor closed, not left to the garbage collector)
+    spill = log._file
+    log.close()
+    assert spill.closed and log.n == 0 and log.columns()["kind"] == []
 
 
 def _mixed_updates() -> tuple[Updates, list[UpdateInfo]]:

@@ -577,6 +577,15 @@ class UpdateLog:
         self.n += n
         self._pending = []
 
+    def close(self) -> None:
+        """Close (and so delete) the spill file: the log is empty afterwards. (A run closes its
+        logs once its statistics are taken; the file was left to the garbage collector, a
+        ``ResourceWarning`` per solution under ``python -X dev``.)"""
+        if self._file is not None:
+            self._file.close()
+            self._file = None
+        self._pending, self._recent, self.n = [], [], 0
+
     def take_recent(self) -> list[dict[str, Any]]:
         """The columns of the chunks spilled since the last call (``keep_recent`` set; else
         none), each as :meth:`flush` stores it plus ``vehicle_sets`` (the tuples that
