@@ -1113,7 +1113,9 @@ def test_real_run_links_are_the_steps_measurements(real_run):
 def test_an_epoch_without_initialized_vehicles_clears_the_estimates(tmp_path):
     """v2v.run's epoch logger: an epoch whose rows are all uninitialized (after an estimate was
     drawn) is an empty estimates and ellipses row, so the viewer does not keep showing the
-    estimate of the epoch before; the error series just have no point there. The nis series
+    estimate of the epoch before; the error series have no point there and a Clear at that
+    time (rerun draws a clear in a time-series plot as a hole in the line, so the plot does not
+    join 0.0 s to 0.2 s as if there had been an estimate in between). The nis series
     is the mean NIS of the vehicle's accepted updates of each epoch (update log by hand:
     0.0 s a pseudorange NIS 0.5 and a UWB range lead-veh.1 NIS 1.5, mean 1; 0.1 s one
     update, no point: uninitialized; 0.2 s a rejected pseudorange only, NaN)."""
@@ -1159,6 +1161,29 @@ def test_an_epoch_without_initialized_vehicles_clears_the_estimates(tmp_path):
     assert rej == [[2.0], [3.0]]  # every rejected_* count, the carrier phase's too
     t_nis, nis = _column(chunks[bp.error_path("GPS", "veh.1", "nis")], "Scalars:scalars")
     assert [round(x / 1e8) for x in t_nis] == [0, 2] and nis[0] == [1.0] and np.isnan(nis[1][0])
+    for series in bp.ERROR_SERIES:
+        t_clear, clear = _column(chunks[bp.error_path("GPS", "veh.1", series)], "Clear:is_recursive")
+        assert [round(x / 1e8) for x in t_clear] == [1] and clear == [[False]], series
+
+
+def test_error_gaps_start_where_an_estimate_stops_across_chunks():
+    """_error_gap_starts: a gap starts at a vehicle's first uninitialized row after an
+    initialized one, also when the initialized row was the last of the chunk before; a vehicle
+    never initialized (or still uninitialized) starts none."""
+    import pandas as pd
+
+    from v2v.run import _error_gap_starts
+
+    est: dict[tuple[str, str], bool] = {}
+    a = pd.DataFrame({"t_s": [0.0, 0.0, 0.1, 0.1], "vehicle": ["v1", "v2"] * 2,
+                      "initialized": [False, True, False, True]})
+    assert _error_gap_starts(a["t_s"], a["vehicle"], a["initialized"].to_numpy(), est, "S") == ([], [])
+    b = pd.DataFrame({"t_s": [0.2, 0.2, 0.3, 0.3, 0.4, 0.4], "vehicle": ["v1", "v2"] * 3,
+                      "initialized": [True, False, False, False, True, True]})
+    assert _error_gap_starts(b["t_s"], b["vehicle"], b["initialized"].to_numpy(), est, "S") == ([0.2, 0.3], ["v2", "v1"])
+    assert _error_gap_starts(b["t_s"], b["vehicle"], b["initialized"].to_numpy(), est, "T") == ([0.3], ["v1"])
+    c = pd.DataFrame({"t_s": [0.5], "vehicle": ["v2"], "initialized": [False]})
+    assert _error_gap_starts(c["t_s"], c["vehicle"], c["initialized"].to_numpy(), est, "S") == ([0.5], ["v2"])
 
 
 def test_real_run_measurement_statistics_pool_the_clusters(real_run):

@@ -1089,6 +1089,25 @@ def _log_truth_and_links(logger, steps, uwb, bearings, sky_every: dict[int, Any]
     return steps[-1].t_s
 
 
+def _error_gap_starts(t_s: pd.Series, vehicles: pd.Series, initialized: np.ndarray,
+                      estimated: dict[tuple[str, str], bool], solution: str) -> tuple[list[float], list[str]]:
+    """(times, vehicles) of the rows (in order) where a vehicle's estimate stops: uninitialized
+    after an initialized row of it, in this chunk or the last one logged (``estimated``, kept
+    across chunks and updated here). The replay's error series get a hole there."""
+    if initialized.all():  # (the usual chunk)
+        for v in vehicles.unique().tolist():
+            estimated[(solution, v)] = True
+        return [], []
+    times: list[float] = []
+    which: list[str] = []
+    for t, v, ok in zip(t_s.tolist(), vehicles.tolist(), initialized.tolist(), strict=True):
+        if not ok and estimated.get((solution, v), False):
+            times.append(t)
+            which.append(v)
+        estimated[(solution, v)] = ok
+    return times, which
+
+
 def _epoch_logger(logger, georef: GeoReference, timing: dict[str, float]):
     """Callback logging a chunk of one solution's epoch rows (the frame of ``take_frame``) to the
     replay: each epoch's estimates of the initialized vehicles (net XY, around the lead's true
@@ -1100,6 +1119,7 @@ def _epoch_logger(logger, georef: GeoReference, timing: dict[str, float]):
 
     cache: dict[str, tuple[float, float]] = {}  # cos, sin of the grid convergence at the first lead position
     shown: set[tuple[str, str]] = set()  # (solution, cluster) with estimates logged
+    estimated: dict[tuple[str, str], bool] = {}  # (solution, vehicle): initialized in its last row logged
     error_columns = ("along_err_m", "across_err_m", "sigma_along_m", "sigma_across_m", "nees_pos")
     rejected = ("rejected_pr", "rejected_uwb", "rejected_bearing", "rejected_doppler", "rejected_phase")  # (phase: if any)
 
@@ -1118,6 +1138,9 @@ def _epoch_logger(logger, georef: GeoReference, timing: dict[str, float]):
             g = georef.grid_convergence_rad(float(x0), float(y0))
             cache["cos_sin"] = (np.cos(g), np.sin(g))
         ini = frame["initialized"].to_numpy(dtype=bool)
+        gap_t, gap_v = _error_gap_starts(frame["t_s"], frame["vehicle"], ini, estimated, solution)
+        if gap_v:
+            logger.log_error_gaps(gap_t, solution, gap_v)
         rows = frame[ini]
         # every epoch, one without an initialized vehicle too (an empty row: the viewer shows the
         # latest row, so the estimates drawn before would stay), once a vehicle has been

@@ -7,6 +7,7 @@ Entity paths (``<sol>`` = solution name, ``<veh>`` = vehicle id, both escaped wi
 ==================================  ===============  ======================================
 path                                archetype        content
 ==================================  ===============  ======================================
+``world``                           ViewCoordinates  right-handed, z up (static)
 ``world/lanes``                     LineStrips3D     lane centre lines, z = 0.02 m, just
                                                      above the surface (static)
 ``world/lanes/surface``             Mesh3D           lane surfaces: centre line buffered by
@@ -18,7 +19,10 @@ path                                archetype        content
 ``world/vehicles/truth``            Boxes3D          true vehicle bodies, one batch per step
 ``world/vehicles/truth/antennas``   Points3D         true antenna positions (``xyz_m``)
 ``world/vehicles/background``       Boxes3D          non-cluster traffic (radio blockers)
-``world/estimates/<sol>``           Points3D         estimated antenna positions
+``world/estimates/<sol>``           Points3D         estimated antenna positions, horizontal
+                                                     only: drawn at z = 0.2 m
+                                                     (``estimate_z_m``; the up error is in
+                                                     ``epochs.parquet``, not drawn)
 ``world/estimates/<sol>/ellipses``  Ellipsoids3D     horizontal 95 % uncertainty ellipses:
                                                      flat ellipsoids, drawn with their axes
 ``world/links/uwb``                 LineStrips3D     UWB ranges a -> b, coloured by status
@@ -48,8 +52,11 @@ row logged at a time: one cluster's estimates only).
 What ``v2v run`` logs (``v2v.run``): estimates and errors only for initialized vehicles (an
 epoch without any, after some were drawn, is an empty estimates row, which clears them);
 each estimate is drawn at its vehicle's true antenna plus its error (``est - true`` ENU,
-turned into net XY by the grid convergence), so its offset from the drawn truth is the
-``epochs.parquet`` error; ``n_sats`` is ``used_pr`` and ``rejections`` the sum of the
+turned into net XY by the grid convergence), so its horizontal offset from the drawn truth
+is the ``epochs.parquet`` east/north error (estimates are drawn at ``estimate_z_m``, truth
+antennas at their height); a vehicle's error series have a hole (a ``Clear``) from the first
+epoch it has no estimate after one (it left the cluster, or was reset and not yet
+re-initialized) to its next row; ``n_sats`` is ``used_pr`` and ``rejections`` the sum of the
 ``rejected_*`` counts of pr, doppler, uwb, bearing and, in a carrier-phase solution, phase;
 ``nis`` the mean NIS of the accepted updates those ``used_*`` counts count (the output
 interval's SD pseudoranges, Dopplers, phases, UWB ranges and bearings naming the vehicle, a

@@ -222,6 +222,12 @@ class ReplayLogger(ABC):
                                **({"cluster": cluster} if cluster else {}))
             lo += m
 
+    def log_error_gaps(self, t_s: ArrayLike, solution: str, vehicle_ids: Sequence[str]) -> None:  # noqa: B027
+        """At each ``t_s[j]``, ``vehicle_ids[j]``'s error series of ``solution`` stop: the vehicle
+        has no estimate from there until its next :meth:`log_errors` row (it left the cluster
+        or was re-initialized), so a plot must not join the rows on either side of the gap
+        with a line. Optional hook: nothing by default."""
+
     @abstractmethod
     def close(self) -> None:
         """Flush everything and publish the recording (atomically). Idempotent."""
@@ -286,6 +292,9 @@ class NullLogger(ReplayLogger):
         pass
 
     def log_epochs(self, t_s, solution, counts, vehicle_ids, est_xy_m, cov_en_m2, errors, cluster="") -> None:
+        pass
+
+    def log_error_gaps(self, t_s, solution, vehicle_ids) -> None:
         pass
 
     def close(self) -> None:

@@ -209,7 +209,8 @@ def static_world(
     def xy_of(raw: bytes) -> FloatArray:
         return np.frombuffer(raw, dtype=np.float64).reshape(-1, 2)
 
-    out: list[tuple[str, rr.AsComponents]] = []
+    # net XY is east-ish / north-ish and z up: said once, so the viewer need not guess the up axis
+    out: list[tuple[str, rr.AsComponents]] = [(bp.WORLD, rr.ViewCoordinates.RIGHT_HAND_Z_UP)]
     lane_xy = [xy_of(raw) for _, raw in lanes]
     if lane_xy:
         strips = [np.column_stack([xy, np.full(len(xy), 0.02)]) for xy in lane_xy]
@@ -1028,6 +1029,23 @@ class RerunReplayLogger(ReplayLogger):
                              f"covariances and {len(values)} error rows of {_N_ERROR_VALUES} numbers")
         self._add_errors(np.repeat(times, lengths), solution, ids, values)
         self._add_estimates(times.tolist(), lengths.tolist(), solution, ids, xy, cov, cluster)
+
+    def log_error_gaps(self, t_s: ArrayLike, solution: str, vehicle_ids: Sequence[str]) -> None:
+        """A non-recursive ``Clear`` on each of the vehicle's error series at each gap's start:
+        rerun's time-series plots draw a clear as a hole in the line (``rr.Clear``'s docs),
+        where without it the line would join the rows before and after the gap."""
+        self._check_open()
+        times = np.asarray(t_s, dtype=float).reshape(-1)
+        ids = [str(v) for v in vehicle_ids]
+        if len(times) != len(ids):
+            raise ValueError(f"log_error_gaps: {len(times)} times for {len(ids)} vehicle ids")
+        for v in dict.fromkeys(ids):
+            sel = np.array([x == v for x in ids])
+            ns = np.round(times[sel] * 1e9).astype(np.int64).astype("timedelta64[ns]")
+            index = [rr.TimeColumn(bp.TIMELINE, duration=ns)]
+            columns = rr.Clear.columns(is_recursive=[False] * len(ns))
+            for series in bp.ERROR_SERIES:
+                self._rec.send_columns(bp.error_path(solution, v, series), indexes=index, columns=columns)
 
     def _add_errors(self, times: FloatArray, solution: str, vehicle_ids: list[str], values: FloatArray) -> None:
         """Rows ``values[j]`` of ``vehicle_ids[j]`` at ``times[j]``, sorted into each vehicle's
