@@ -471,6 +471,7 @@ class UpdateLog:
             return
         import pickle
         import tempfile
+        import weakref
 
         pending = self._pending
         code: dict[str, int] = {}  # the chunk's kinds, numbered in order of first appearance
@@ -571,6 +572,10 @@ class UpdateLog:
         }
         if self._file is None:
             self._file = tempfile.TemporaryFile(prefix="v2v_updates_")
+            # closed (and so deleted) with the log: its records are read after the run (the
+            # experiments keep the SolutionRecord), so not at the run's end; left to the garbage
+            # collector's own close, each file was a ResourceWarning under python -X dev
+            weakref.finalize(self, self._file.close)
         pickle.dump(cols, self._file, protocol=pickle.HIGHEST_PROTOCOL)
         if self.keep_recent:  # (plus the vehicle sets as tuples, not joined with commas)
             self._recent.append({**cols, "vehicle_sets": list(veh_index)})
@@ -578,9 +583,8 @@ class UpdateLog:
         self._pending = []
 
     def close(self) -> None:
-        """Close (and so delete) the spill file: the log is empty afterwards. (A run closes its
-        logs once its statistics are taken; the file was left to the garbage collector, a
-        ``ResourceWarning`` per solution under ``python -X dev``.)"""
+        """Close (and so delete) the spill file now, not when the log is collected: the log is
+        empty afterwards."""
         if self._file is not None:
             self._file.close()
             self._file = None

@@ -687,8 +687,6 @@ def _run_scenario(scenario: Scenario, out_dir: Path, *, quiet: bool, replay: boo
             lane_records = lane_level_rows(epochs_df, pd.read_parquet(tmp / "truth.parquet", columns=truth_cols))
         else:
             sol_stats = {}
-        for rec in recs.values():
-            rec.log.close()
         timing["metrics_io"] = time.perf_counter() - t0
         wall = time.perf_counter() - wall0
         summary: dict[str, Any] = {
