@@ -220,3 +220,47 @@ def test_braking_injector_ramps_down_and_releases():
                          ("mode", "v", 31), ("speed", "v", -1.0)]
     with pytest.raises(ValueError):
         BrakingEvent(t_s=0.0, vehicle="v", decel_mps2=-1.0, duration_s=1.0)
+
+
+def test_a_braking_run_of_exactly_the_minimum_duration_is_an_event():
+    """Three samples at 0.1 s of -4 m/s^2 are 0.3 s of braking (each sample stands for its
+    interval), the minimum: an event (it was dropped, its first-to-last span being 0.2 s)."""
+    t = DT * np.arange(50)
+    acc = np.where((t > 1.95) & (t < 2.25), -4.0, 0.0)  # samples at 2.0, 2.1, 2.2 s
+    ev = detect_braking_events(pd.DataFrame({"t_s": t, "vehicle": "c1.0", "accel_mps2": acc, "speed_mps": 10.0}))
+    assert len(ev) == 1 and ev.loc[0, "t_start_s"] == pytest.approx(2.0) and ev.loc[0, "t_end_s"] == pytest.approx(2.2)
+
+
+def test_solution_totals_pool_the_pairs_samples():
+    """Pair A: RMS 1 m over the 10 of its 100 epochs with an estimate; pair B: 0 m over 100 of 100;
+    pair C: no estimate at all. Pooled over the 110 samples: sqrt(10 * 1^2 / 110) = 0.3015 m (the
+    pairs' epochs as weights gave sqrt(100 / 200) = 0.707 m, and C's NaN made it NaN)."""
+    from v2v.apps.fcw import PAIR_COLUMNS, _solution_totals
+
+    base = dict.fromkeys(PAIR_COLUMNS, 0)
+    rows = [{**base, "solution": "S", "follower": f, "ahead": "c1.0", "epochs": 100, "available": av,
+             "gap_err_rms_m": r, "closing_err_rms_mps": r, "gap_err_n": n, "closing_err_n": n, "epoch_agreement": 1.0}
+            for f, av, r, n in (("a", 0.1, 1.0, 10), ("b", 1.0, 0.0, 100), ("c", 0.0, float("nan"), 0))]
+    tot = _solution_totals(pd.DataFrame(rows, columns=PAIR_COLUMNS), pd.DataFrame(columns=["solution", "warn_time_err_s",
+                                                                                           "outcome"]))
+    assert tot.loc[0, "gap_err_rms_m"] == pytest.approx(np.sqrt(10.0 / 110.0), rel=1e-12)
+    assert tot.loc[0, "closing_err_rms_mps"] == pytest.approx(np.sqrt(10.0 / 110.0), rel=1e-12)
+    assert tot.loc[0, "available"] == pytest.approx(1.1 / 3.0, rel=1e-12)  # epochs-weighted: (10 + 100 + 0) / 300
+
+
+def test_fcw_study_without_pairs_or_epochs_gives_empty_tables():
+    """No following pair (or a run that estimated nothing): empty tables with their columns,
+    not a KeyError."""
+    from v2v.apps.fcw import PAIR_COLUMNS, SOLUTION_COLUMNS
+
+    t = DT * np.arange(10)
+    ep = _pair_epochs(t, np.full(t.size, 20.0), np.zeros(t.size)).assign(cluster="c1")
+    truth = pd.DataFrame({"t_s": np.tile(t, 2), "vehicle": np.repeat(["c1.0", "c1.1"], t.size), "cluster": "c1",
+                          "is_lead": np.repeat([True, False], t.size), "length_m": L_AHEAD, "accel_mps2": 0.0,
+                          "speed_mps": 10.0, "x_m": np.repeat([0.0, 3.2], t.size), "y_m": 0.0, "front_x_m":
+                          np.repeat([0.0, 3.2], t.size), "front_y_m": 2.0, "azimuth_rad": 0.0,
+                          "lane": np.repeat(["E_0", "E_1"], t.size)})  # side by side: nobody follows anybody
+    for epochs, pairs in ((ep, None), (ep.iloc[:0], None), (ep, [])):
+        res = fcw_study(epochs, truth, pairs=pairs)
+        assert res["pairs"].empty and list(res["pairs"].columns) == list(PAIR_COLUMNS)
+        assert res["solutions"].empty and list(res["solutions"].columns) == list(SOLUTION_COLUMNS)

@@ -84,7 +84,9 @@ def test_azimuth_recovered_from_the_error_rotation():
 
 def test_neighbouring_lane_on_the_same_edge_uses_lane_indices():
     """Vehicle in the lane left of the lead (index 1 vs 0): the true relative lane is +1 from the
-    indices on the same edge; on another edge it falls back to round(true_across / w)."""
+    indices on the same edge; on another edge it is unknown (NaN: another edge's lane indices
+    need not correspond to the lead's), and the lane-truth rates count the epoch on the lead's
+    edge only."""
     az = 0.3
     true = -20.0 * _fwd_unit(az) + 0.7 * W * _left_unit(az)  # 0.7 w: lane model disagrees (rounds to 1 anyway)
     est = true + 0.2 * _left_unit(az)
@@ -95,17 +97,25 @@ def test_neighbouring_lane_on_the_same_edge_uses_lane_indices():
     })
     q = lane_quantities(df, truth)
     assert list(q["same_edge"]) == [True, False]
-    np.testing.assert_array_equal(q["rel_lane_true"], [1, 1])
+    np.testing.assert_array_equal(q["rel_lane_true"], [1, np.nan])
+    np.testing.assert_array_equal(q["rel_lane_geom"], [1, 1])
     np.testing.assert_array_equal(q["rel_lane_est"], [1, 1])
-    # two lanes to the left by index while the geometry says one: the lane model fails
+    t1 = lane_level_table(df, truth)
+    assert t1.loc[0, ["lane_model_ok", "correct_lane", "wrong_lane_by_2plus"]].tolist() == [1.0, 1.0, 0.0]
+    # two lanes to the left by index while the geometry says one: the lane model fails on the
+    # epoch with a lane truth (the other epoch's geometric lane is not taken for the truth)
     df2 = df.assign(true_lane_index=2)
     q2 = lane_quantities(df2, truth)
-    np.testing.assert_array_equal(q2["rel_lane_true"], [2, 1])
+    np.testing.assert_array_equal(q2["rel_lane_true"], [2, np.nan])
     t = lane_level_table(df2, truth)
-    assert t.loc[0, "lane_model_ok"] == pytest.approx(0.5)
-    assert t.loc[0, "correct_lane"] == pytest.approx(0.5)
-    assert t.loc[0, "correct_lane_geom"] == 1.0
+    assert t.loc[0, "lane_model_ok"] == 0.0
+    assert t.loc[0, "correct_lane"] == 0.0
+    assert t.loc[0, "correct_lane_geom"] == 1.0  # (over both epochs: the geometry needs no lane truth)
     assert t.loc[0, "same_edge"] == pytest.approx(0.5)
+    # no epoch on the lead's edge: no lane truth, the rates that need it are NaN
+    t3 = lane_level_table(df2.iloc[1:], truth)
+    assert np.isnan(t3.loc[0, ["lane_model_ok", "correct_lane", "wrong_lane_by_2plus"]].astype(float)).all()
+    assert t3.loc[0, "same_edge"] == 0.0 and t3.loc[0, "correct_lane_geom"] == 1.0
 
 
 def test_integrity_counts_by_hand():
@@ -193,7 +203,7 @@ def test_rows_skip_missing_keys_and_match_the_table():
     df.loc[4, "solution"] = None
     rows = lane_level_rows(df)
     assert [(r["solution"], r["vehicle"], r["epochs"]) for r in rows] == [("B", "c1.2", 2), ("A", "c1.1", 2), ("B", "c1.1", 3)]
-    assert rows == lane_level_table(df).to_dict("records")
+    pd.testing.assert_frame_equal(pd.DataFrame(rows), lane_level_table(df))  # (NaN-aware: zero errors give no azimuth)
 
 
 def test_pooled_rows_count_each_vehicle_against_its_own_truth():

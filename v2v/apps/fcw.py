@@ -245,7 +245,10 @@ def detect_braking_events(truth: pd.DataFrame, config: FcwConfig = FcwConfig()) 
         a = g["accel_mps2"].to_numpy(float)
         spd = g["speed_mps"].to_numpy(float)
         for on, off in warning_intervals(t, a < config.braking_threshold_mps2):
-            if off - on + 1e-9 < config.braking_min_duration_s:
+            # (n samples at a step dt cover n dt of braking, one dt more than their first-to-last span)
+            k_on = int(np.searchsorted(t, on))
+            dt = float(t[k_on + 1] - t[k_on]) if k_on + 1 < len(t) else (float(t[k_on] - t[k_on - 1]) if k_on else 0.0)
+            if off - on + dt + 1e-9 < config.braking_min_duration_s:
                 continue
             k = (t >= on) & (t <= off)
             rows.append({"vehicle": veh, "t_start_s": on, "t_end_s": off, "min_accel_mps2": float(a[k].min()),
@@ -330,6 +333,7 @@ def fcw_study(epochs: pd.DataFrame, truth: pd.DataFrame, *, config: FcwConfig = 
             pair_rows.append({
                 "solution": sol, "follower": f, "ahead": a, "epochs": int(t.size), "available": float(av.mean()) if t.size else float("nan"),
                 "gap_err_rms_m": _rms(gap_err), "closing_err_rms_mps": _rms(cl_err),
+                "gap_err_n": int(np.isfinite(gap_err).sum()), "closing_err_n": int(np.isfinite(cl_err).sum()),
                 "truth_warn_epochs": int(wt.sum()), "est_warn_epochs": int(we.sum()),
                 "epoch_agreement": float(np.mean(wt == we)) if t.size else float("nan"),
                 "truth_warnings": cmp.truth_warnings, "est_warnings": cmp.estimated_warnings,
@@ -349,11 +353,23 @@ def fcw_study(epochs: pd.DataFrame, truth: pd.DataFrame, *, config: FcwConfig = 
                     "warn_time_err_s": t_est - t_true if kind == "hit" else float("nan"),
                     "min_ttc_true_s": float(np.nanmin(kt["ttc_s"].to_numpy()[win])) if win.any() else float("nan"),
                 })
-    pair_df = pd.DataFrame(pair_rows)
+    pair_df = pd.DataFrame(pair_rows, columns=PAIR_COLUMNS)
     ev_df = pd.DataFrame(event_rows, columns=[
         "solution", "follower", "ahead", "t_start_s", "t_end_s", "min_accel_mps2", "speed_start_mps",
         "first_warn_true_s", "first_warn_est_s", "outcome", "warn_time_err_s", "min_ttc_true_s"])
     return {"pairs": pair_df, "solutions": _solution_totals(pair_df, ev_df), "events": ev_df, "braking": braking}
+
+
+#: the columns of :func:`fcw_study`'s ``pairs`` table (also when it has no rows)
+PAIR_COLUMNS = ("solution", "follower", "ahead", "epochs", "available", "gap_err_rms_m", "closing_err_rms_mps",
+                "gap_err_n", "closing_err_n", "truth_warn_epochs", "est_warn_epochs", "epoch_agreement",
+                "truth_warnings", "est_warnings", "detected", "missed", "false", "warn_time_err_mean_s",
+                "warn_time_err_abs_max_s")
+#: the columns of its ``solutions`` table
+SOLUTION_COLUMNS = ("solution", "available", "gap_err_rms_m", "closing_err_rms_mps", "truth_warnings", "detected",
+                    "missed", "false", "missed_rate", "epoch_agreement", "braking_events", "events_warned_true",
+                    "events_hit", "events_missed", "events_false", "event_warn_time_err_mean_s",
+                    "event_warn_time_err_abs_p95_s")
 
 
 def _rms(x: F64) -> float:
@@ -361,7 +377,19 @@ def _rms(x: F64) -> float:
     return float(np.sqrt(np.mean(x * x))) if x.size else float("nan")
 
 
+def _pooled_rms(rms: pd.Series, n: pd.Series) -> float:
+    """The RMS over the pairs' samples together: each pair's mean square weighted by its count
+    of finite samples (a pair without any adds nothing)."""
+    r, k = rms.to_numpy(float), n.to_numpy(float)
+    use = k > 0
+    return float(np.sqrt(np.sum(r[use] ** 2 * k[use]) / np.sum(k[use]))) if use.any() else float("nan")
+
+
 def _solution_totals(pair_df: pd.DataFrame, ev_df: pd.DataFrame) -> pd.DataFrame:
+    """Per solution: availability and the agreement weighted by the pairs' epochs, the RMS
+    errors pooled over the pairs' finite samples (:func:`_pooled_rms`; before 2026-12-06 each
+    pair's RMS was weighted by all its epochs, and a pair with none available made the total
+    NaN), warning and braking-event counts."""
     rows = []
     for sol, g in pair_df.groupby("solution", sort=False):
         e = ev_df[ev_df["solution"] == sol]
@@ -369,19 +397,19 @@ def _solution_totals(pair_df: pd.DataFrame, ev_df: pd.DataFrame) -> pd.DataFrame
         n_true = int(g["truth_warnings"].sum())
         rows.append({
             "solution": sol, "available": float(np.average(g["available"], weights=g["epochs"])) if g["epochs"].sum() else float("nan"),
-            "gap_err_rms_m": float(np.sqrt(np.average(np.square(g["gap_err_rms_m"]), weights=g["epochs"]))),
-            "closing_err_rms_mps": float(np.sqrt(np.average(np.square(g["closing_err_rms_mps"]), weights=g["epochs"]))),
+            "gap_err_rms_m": _pooled_rms(g["gap_err_rms_m"], g["gap_err_n"]),
+            "closing_err_rms_mps": _pooled_rms(g["closing_err_rms_mps"], g["closing_err_n"]),
             "truth_warnings": n_true, "detected": int(g["detected"].sum()), "missed": int(g["missed"].sum()),
             "false": int(g["false"].sum()),
             "missed_rate": float(g["missed"].sum() / n_true) if n_true else float("nan"),
-            "epoch_agreement": float(np.average(g["epoch_agreement"], weights=g["epochs"])),
+            "epoch_agreement": float(np.average(g["epoch_agreement"], weights=g["epochs"])) if g["epochs"].sum() else float("nan"),
             "braking_events": int(len(e)), "events_warned_true": int(e["outcome"].isin(["hit", "missed"]).sum()),
             "events_hit": int((e["outcome"] == "hit").sum()), "events_missed": int((e["outcome"] == "missed").sum()),
             "events_false": int((e["outcome"] == "false").sum()),
             "event_warn_time_err_mean_s": float(errs.mean()) if errs.size else float("nan"),
             "event_warn_time_err_abs_p95_s": float(np.percentile(np.abs(errs), 95.0)) if errs.size else float("nan"),
         })
-    return pd.DataFrame(rows)
+    return pd.DataFrame(rows, columns=SOLUTION_COLUMNS)
 
 
 # ----------------------------------------------------------------------------------- braking injection

@@ -39,7 +39,13 @@ Ambiguity resolution (after every epoch's phase updates, per vehicle, in state o
    the SD state: conditioning is parametrization-free, and the SD clock is untouched because
    the rows only difference ambiguities). They stay in the state (fix-and-hold: the fixed
    ambiguities are carried forward until a slip removes one of the ambiguities), and later
-   epochs only apply the combinations whose variance is still above the hold level.
+   epochs only apply the combinations whose variance is still above ``(2 sigma_h)^2``
+   (``sigma_h = fix_hold_sigma_cycles``: a held combination's variance stays near
+   ``sigma_h^2``; the factor keeps round-off and the slow growth between epochs from
+   re-applying it every epoch). A vehicle with fewer than ``ar_min_dd`` DD ambiguities may
+   keep (not start) a fix when every fixed combination's variance is within ``(4 sigma_h)^2``
+   (:func:`_held`: a looser test, as it only asks whether the combinations are still the
+   held ones, not whether to pull them again).
 
 A vehicle is *fixed* at an epoch when every one of its DD ambiguities old enough to be
 searched is in the fixed set (``n_fixed == n_eligible >= 3``, i.e. at least 4 satellites),
@@ -250,8 +256,10 @@ def resolve_vehicle(x: F64, P: F64, layout: StateLayout, v: str, el_by_prn: dict
     ``eligible``: PRNs whose ambiguities may take part (old enough: ``ar_min_lock_s``);
     None = all. Returns the status and the fix-and-hold pseudo-measurements still to apply:
     ``(state indices, coefficients, integer value)`` per fixed z-space combination whose
-    variance is above the hold level. ``n_dd`` counts every DD ambiguity of ``v``;
-    ineligible ones stay float (the vehicle is then at most "partial").
+    variance is above ``(2 sigma_h)^2`` (module docstring). ``n_dd`` counts every DD ambiguity of
+    ``v``; ineligible ones (too new to be searched) stay float and do not count against the
+    state: with every eligible one fixed the vehicle is "fixed" (``n_fixed == n_eligible``,
+    :class:`PhaseStatus`), also when ``n_dd > n_eligible``.
     """
     keys = layout.ambiguity_keys(v)
     all_prns = [int(k[1]) for k in keys]
@@ -309,7 +317,9 @@ def resolve_vehicle(x: F64, P: F64, layout: StateLayout, v: str, el_by_prn: dict
 
 
 def _held(Qa: F64, res, cfg: PhaseConfig) -> bool:
-    """Is every fixed z combination already held (variance at the fix-and-hold level)?"""
+    """Is every fixed z combination already held: its variance within ``(4 sigma_h)^2``, four
+    times the ``(2 sigma_h)^2`` above which :func:`resolve_vehicle` pulls a combination again
+    (module docstring)?"""
     Zs = res.Z[:, res.fixed_mask].astype(float)
     qz = np.einsum("ij,jk,ik->i", Zs.T, Qa, Zs.T)
     return bool(np.all(qz <= 4.0 * (2.0 * cfg.fix_hold_sigma_cycles) ** 2))

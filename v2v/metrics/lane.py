@@ -9,8 +9,15 @@ Relative lane (positive = the other vehicle is to the lead's left; SUMO lane ind
 rightmost lane, so index differences have the same sign):
 
 * **true** relative lane: ``lane_index(vehicle) - lane_index(lead)`` when both are on the same
-  (non-internal) edge; otherwise (different edges, junction-internal lanes, or no truth table
-  to tell) ``round(true_across / lane_width)``;
+  (non-internal) edge; unknown (NaN) when the truth table puts them on different edges or on
+  a junction-internal lane (lane indices of two edges need not correspond, and after a turn
+  the follower is in no lane of the lead's road), so ``correct_lane``, ``lane_model_ok`` and
+  ``wrong_lane_by_2plus`` count the epochs on the lead's edge only (``same_edge`` is their
+  share). Before 2026-12-06 such epochs took the geometric lane below as their truth, which
+  scored them against the straight-road model they may break (a follower on the approach
+  to a right turn while the lead has turned, both in lane 0, counted as right with the
+  geometry saying -1 to -6). Without a truth table (``edge`` / ``lead_edge`` columns) the
+  geometric lane stands in for the truth on every epoch;
 * **geometric** relative lane: ``round(true_across / lane_width)`` always — what a perfect
   relative position estimate would give under the straight-road lane model below;
 * **estimated** relative lane: ``round(est_across / lane_width)``, ``est_across`` the estimated
@@ -222,7 +229,8 @@ def _lane_columns(df: Mapping[str, pd.Series] | pd.DataFrame, n: int) -> dict[st
     w = df["lane_width_m"].to_numpy(float)
     out = {"true_across_m": _across(te, tn, az), "est_across_m": _across(ee, en, az),
            "true_along_m": _along(te, tn, az), "est_along_m": _along(ee, en, az)}
-    if "edge" in df and "lead_edge" in df:
+    has_truth = "edge" in df and "lead_edge" in df
+    if has_truth:
         edge = df["edge"].astype(str)
         same = (edge == df["lead_edge"].astype(str)) & ~edge.str.startswith(":") & df["edge"].notna()
         same &= df["true_lane_index"].notna() & df["lead_lane_index"].notna()
@@ -233,7 +241,7 @@ def _lane_columns(df: Mapping[str, pd.Series] | pd.DataFrame, n: int) -> dict[st
     idx_diff = df["true_lane_index"].to_numpy(float) - df["lead_lane_index"].to_numpy(float) if (
         "true_lane_index" in df and "lead_lane_index" in df) else np.full(n, np.nan)
     out["rel_lane_geom"] = geom
-    out["rel_lane_true"] = np.where(out["same_edge"], idx_diff, geom)
+    out["rel_lane_true"] = np.where(out["same_edge"], idx_diff, np.nan) if has_truth else geom
     out["rel_lane_est"] = round_half_away(out["est_across_m"] / w)
     return out
 
@@ -293,7 +301,8 @@ def lane_level_table(epochs: pd.DataFrame, truth: pd.DataFrame | None = None, *,
     Columns: ``epochs``, ``initialized`` (fraction), ``same_edge`` (fraction of initialized
     epochs on the lead's edge), ``lane_model_ok`` (geometric = true relative lane),
     ``correct_lane`` (estimated = true relative lane), ``correct_lane_geom`` (estimated =
-    geometric), ``wrong_lane_by_2plus``; where-in-lane ``across_abs_p50/p95/p99_m`` (|across
+    geometric), ``wrong_lane_by_2plus`` (the three with the true lane: fractions of the
+    initialized epochs that have one, on the lead's edge; NaN without any); where-in-lane ``across_abs_p50/p95/p99_m`` (|across
     error|) and ``along_abs_p95_m``; integrity per axis (``across_``/``along_`` prefixes): the
     k-sigma and PL misleading-information rates, mean PL, availability at the alert limit
     and HMI rate (see the module docstring). Fractions of initialized epochs unless noted.
@@ -348,13 +357,15 @@ def lane_level_rows(epochs: pd.DataFrame, truth: pd.DataFrame | None = None, *,
         across = np.abs(col["across_err_m"][ok].astype(float))
         along = np.abs(col["along_err_m"][ok].astype(float))
         geom, true, est = col["rel_lane_geom"][ok], col["rel_lane_true"][ok], col["rel_lane_est"][ok]
+        known = np.isfinite(true)  # (a lane truth: on the lead's edge, or no truth table)
+        n_known = int(known.sum())
         row = {
             "solution": sol, "vehicle": veh, "epochs": int(len(g)), "initialized": float(init.mean()) if len(g) else float("nan"),
             "same_edge": frac(col["same_edge"][ok]),
-            "lane_model_ok": frac(geom == true),
-            "correct_lane": frac(est == true),
+            "lane_model_ok": frac(known & (geom == true), n_known),
+            "correct_lane": frac(known & (est == true), n_known),
             "correct_lane_geom": frac(est == geom),
-            "wrong_lane_by_2plus": frac(np.abs(est - true) >= 2),
+            "wrong_lane_by_2plus": frac(known & (np.abs(est - true) >= 2), n_known),
             **dict(zip(("across_abs_p50_m", "across_abs_p95_m", "across_abs_p99_m"), _pct3(across), strict=True)),
             "along_abs_p95_m": _pct(along, 95.0),
         }
