@@ -34,6 +34,25 @@ def test_late_message_is_counted_and_dropped():
     assert ex.deliver(1.6) == [] and ex.stats.late == 1
 
 
+def test_a_message_tagged_at_the_last_horizon_is_on_time_whatever_the_rounding():
+    """Latency 0.15 s, lag 0.1 s, deliveries on a 10 Hz grid: a message tagged t misses the
+    delivery at t + 0.1 (horizon t) and arrives before the one at t + 0.2, whose last horizon
+    is its own time tag: the filter is still at t, so it is delivered (applied at t), never
+    late. Before, (t + 0.1 - 0.1 + 1e-9) - 1e-9 rounding above t (t = 0.7: 0.7000000000000001)
+    made some of them late and not others. One tagged before the last horizon is late."""
+    cfg = ExchangeConfig(latency_s=0.15, filter_lag_s=0.1)
+    ex = V2VExchange(cfg, "lead", np.random.default_rng(0))
+    grid = [round(0.1 * k, 10) for k in range(60)]
+    got = []
+    for k, now in enumerate(grid):
+        ex.send(Message(now, "a", "gnss", k))
+        got += [m.payload for m in ex.deliver(now)]
+    assert ex.stats.late == 0 and got == list(range(len(grid) - 2))  # (the last two still in flight)
+    ex2 = V2VExchange(ExchangeConfig(latency_s=0.25, filter_lag_s=0.1), "lead", np.random.default_rng(0))
+    ex2.send(Message(0.7, "a", "gnss", None))
+    assert [ex2.deliver(t) for t in (0.8, 0.9, 1.0)] == [[], [], []] and ex2.stats.late == 1  # 0.7 < horizon 0.8
+
+
 def test_loss_rate_within_binomial_bounds():
     p, n = 0.2, 20_000
     ex = V2VExchange(ExchangeConfig(loss_probability=p), "lead", np.random.default_rng(42))

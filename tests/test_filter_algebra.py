@@ -405,6 +405,20 @@ def test_uwb_inequality_constraint_lands_on_the_bound():
     assert ekf.P[i, i] == pytest.approx(0.04 / 1.3, rel=1e-12)
 
 
+def test_a_state_on_its_bound_up_to_round_off_is_not_pulled_again():
+    """After a pull, round-off can leave the bias an ulp past its bound (0.5 -> 0.5000000000000001):
+    that is on the bound, no second pseudo-measurement (the compiled engine, rounding otherwise,
+    logged one of NIS ~1e-50 where the Python one did not). A state past the bound by more than
+    1e-9 of the bounds' width is pulled."""
+    cfg = FilterConfig(uwb_bias_bounds_m=(-0.5, 0.5))
+    lay = StateLayout.build(lead="L", vehicles=["A"], uwb_pairs=[("L", "A")])
+    i = lay.uwb_bias(("L", "A"))
+    for x0, pulled in ((np.nextafter(0.5, 1.0), False), (-np.nextafter(0.5, 1.0), False), (0.5 + 1e-8, True)):
+        ekf = ClusterEkf(lay, cfg)
+        ekf._set_block(slice(i, i + 1), np.array([x0]), np.array([[0.04]]))
+        assert len(ekf._apply_constraints(("A", "L"))) == int(pulled), x0
+
+
 # --------------------------------------------------------------------------- layout
 def test_layout_named_slices_and_add_remove_remap():
     lay = StateLayout.build(lead="L", vehicles=["A", "B"], azimuth_vehicles=["L", "A"], uwb_pairs=[("A", "L")])

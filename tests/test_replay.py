@@ -1204,3 +1204,20 @@ def test_real_run_measurement_statistics_pool_the_clusters(real_run):
             assert int(rows[rows.cluster == c].used_doppler.sum()) > 0
     assert "uwb" in summary["statistics"]["GPS+UWB"]["measurements"]
     assert "uwb" not in summary["statistics"]["GPS"]["measurements"]
+
+
+def test_real_run_exchange_counts_add_up_the_clusters(real_run):
+    """summary.json's ``exchange`` counts every cluster's link (before 2026-12-06: the last
+    cluster's only). Counted from measurements.parquet: each cluster's lead is sent its
+    followers' GNSS epochs (one message per receiver epoch) and every UWB range not initiated
+    by itself (the ranges go to every lead, one message each); bearings go on no link (no
+    solution uses them)."""
+    _, _, _, summary, meas = real_run
+    gnss = meas[meas.type == "pseudorange"][["t_s", "vehicle"]].drop_duplicates()
+    uwb = meas[meas.type == "uwb"]
+    want = 0
+    for lead in summary["leads"]:
+        cluster = lead.split(".")[0]
+        want += int(((gnss.vehicle != lead) & gnss.vehicle.str.startswith(cluster + ".")).sum())
+        want += int((uwb.vehicle != lead).sum())
+    assert len(summary["leads"]) == 2 and summary["exchange"]["sent"] == want

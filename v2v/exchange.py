@@ -8,7 +8,14 @@ message is delayed by ``latency_s`` and lost with probability ``loss_probability
 The filter applies every measurement at its own time tag. To do that with late
 messages it runs ``filter_lag_s`` behind real time (default: the latency): at time ``t``
 it processes everything time-tagged up to ``t - filter_lag_s``. A message that arrives
-after its time tag has been processed is counted as *late* and dropped.
+after its time tag has been processed is counted as *late* and dropped: one whose time tag
+is before the horizon of the last delivery. One tagged at that horizon (within 1e-9 s) is
+not late: the filter is still at that time, so it is applied at its time tag, after the
+output epoch at that time (before 2026-12-06 such a message was late or not by the
+rounding of ``now - lag``). The filter advances at the output epochs, so whether a
+message is late depends on them too: it is late when an output epoch's horizon passes its
+time tag before it arrives (with ``latency_s`` a little over ``filter_lag_s``, most
+messages at a 10 Hz output, few at 1 Hz).
 """
 
 from __future__ import annotations
@@ -78,8 +85,8 @@ class V2VExchange:
 
     @property
     def processed_until_s(self) -> float:
-        """The filter's horizon so far: every message delivered later has a time tag
-        ``>= processed_until_s - 1e-9`` (earlier ones are counted late and dropped), which is
+        """The filter's horizon so far (plus 1e-9 s): every message delivered later has a time
+        tag ``>= processed_until_s - 2e-9`` (earlier ones are counted late and dropped), which is
         what lets a chunked run hand the filter a chunk's events before the next chunk exists."""
         return self._processed_until_s
 
@@ -87,7 +94,10 @@ class V2VExchange:
         """Messages whose time tags the filter may process at ``now_s``, in time-tag order."""
         in_flight, arrived, pop, push = self._in_flight, self._arrived, heapq.heappop, heapq.heappush
         due = now_s + 1e-9
-        too_late = self._processed_until_s - 1e-9  # (changes only below, after the arrivals)
+        # before the last horizon (processed_until_s less its 1e-9) by more than 1e-9: a tag at
+        # the horizon itself is on time whichever way now - lag rounded (changes only below,
+        # after the arrivals)
+        too_late = self._processed_until_s - 2e-9
         late = 0
         while in_flight and in_flight[0][0] <= due:
             _, seq, msg = pop(in_flight)

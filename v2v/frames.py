@@ -9,7 +9,9 @@ Conventions used everywhere in v2v
 * **Geodetic**: latitude/longitude in radians, ellipsoidal height in metres (WGS-84).
 * **ECEF**: WGS-84 Earth-centred Earth-fixed, metres.
 * **ENU**: local-level east/north/up at a reference point, metres.
-* **Azimuth**: radians clockwise from north (SUMO's ``getAngle`` is this in degrees).
+* **Azimuth**: radians clockwise from (true) north. SUMO's ``getAngle`` is degrees clockwise
+  from *grid* north, the net's +y: true azimuth = grid azimuth + the grid convergence
+  (:meth:`GeoReference.grid_convergence_rad`; up to 2.9e-4 rad on the shipped nets).
 * **Lead frame** (ISO 8855): along-track = the lead vehicle's heading, across-track
   = 90 deg to the *left* of it, up = up.
 
@@ -183,7 +185,10 @@ class GeoReference:
     net_offset_m : (float, float)
         SUMO ``netOffset``: ``xy_net = xy_projected + net_offset``.
     origin_lat_deg, origin_lon_deg, origin_h_m : float
-        Tangent origin for nets without a projection (net XY (0, 0) sits here).
+        Tangent origin for nets without a projection: net XY = ``net_offset_m`` sits here (the
+        offset is taken off first, as for a projected net), so XY (0, 0) does only for a net
+        without an offset. ``origin_h_m``: the ellipsoidal height of net z = 0
+        (:meth:`xyz_to_ecef`).
     """
 
     proj: str | None

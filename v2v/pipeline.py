@@ -348,7 +348,7 @@ class ExchangeStream:
         self._delivered.sort(key=lambda m: (m.t_s, _KIND_RANK[m.kind]))
         if final:
             cut = len(self._delivered)
-        else:  # a later delivery has t_s >= the filter's horizon - 1e-9 (V2VExchange.deliver)
+        else:  # a later delivery has t_s >= processed_until_s - 2e-9 (V2VExchange.deliver)
             s = exch.processed_until_s - 2e-9
             cut = 0
             while cut < len(self._delivered) and self._delivered[cut].t_s < s:

@@ -21,6 +21,7 @@ renamed when complete, so an interrupted or failed run leaves nothing that looks
 from __future__ import annotations
 
 import contextlib
+import dataclasses
 import gc
 import math
 import shutil
@@ -36,6 +37,7 @@ import numpy as np
 from v2v import __version__
 from v2v.config.scenario import Scenario, save_resolved
 from v2v.errors import UserError, check_interrupt, not_a_file
+from v2v.exchange import ExchangeStats
 from v2v.frames import GeoReference
 from v2v.io.atomic import RunFolder, atomic_write_json, atomic_write_parquet
 from v2v.io.tables import ParquetStream
@@ -86,7 +88,7 @@ def resolve_network(scenario: Scenario) -> ResolvedNetwork:
         net_offset_m=(float(offset[0]), float(offset[1])),
         origin_lat_deg=cfg.georef_lat_deg,
         origin_lon_deg=cfg.georef_lon_deg,
-        origin_h_m=0.0,
+        origin_h_m=cfg.origin_h_m,  # (net z = 0's height: xyz_to_ecef; the truth adds it itself)
     )
     if cfg.polygon_files:
         polys = tuple(Path(p) for p in cfg.polygon_files)
@@ -637,6 +639,7 @@ def _run_scenario(scenario: Scenario, out_dir: Path, *, quiet: bool, replay: boo
             membership: dict[str, list[dict[str, Any]]] = {}
             filter_counters: dict[str, dict[str, int]] = {}
             recs: dict[str, Any] = {}
+            exchange_stats = ExchangeStats()  # every cluster's links added up (each has its own exchange)
             for cl in clusters:
                 for runner, key, part in zip(cl.runners, cl.keys, cl.parts, strict=True):
                     rec = runner.finish()
@@ -645,7 +648,8 @@ def _run_scenario(scenario: Scenario, out_dir: Path, *, quiet: bool, replay: boo
                     if rec.membership:
                         membership[key] = [{"t_s": t, "vehicle": v, "change": c} for t, v, c in rec.membership]
                     records_meta.append((cl.name, part))
-                exchange_stats = cl.exchange.stats
+                for f in dataclasses.fields(ExchangeStats):
+                    setattr(exchange_stats, f.name, getattr(exchange_stats, f.name) + getattr(cl.exchange.stats, f.name))
 
         # metrics and outputs -------------------------------------------------------------
         t0 = time.perf_counter()

@@ -1490,9 +1490,10 @@ class ClusterFilterBase(ABC):
             for i, (lo, hi) in checks:
                 xi = float(self._get_x()[i])
                 pii = float(self._get_P()[i, i])
-                if xi > hi:
+                tol = kernels.BOUND_TOL * (hi - lo)  # (on its bound up to round-off: no pull)
+                if xi > hi + tol:
                     z, r_var = lo, pii * (hi - lo) / (xi - hi)
-                elif xi < lo:
+                elif xi < lo - tol:
                     z, r_var = hi, pii * (hi - lo) / (lo - xi)
                 else:
                     continue

@@ -167,6 +167,11 @@ def _set_block1(x, P, i, mean, var):
 # exactly symmetric.
 
 LAZY_RANK = 32
+#: UWB bias / scale bound constraints (MacGougan (2009) eq. 3.19-3.22): a state outside its
+#: bounds by at most this fraction of their width counts as on them. A pull leaves the state
+#: on its bound up to round-off, and the compiled and the Python engines round differently:
+#: without it, one of them could pull again (a record of NIS ~1e-50) where the other did not.
+BOUND_TOL = 1e-9
 _TILE = 32  # square tiles (8 KB of float64) for the passes that read or write P column-wise
 
 
@@ -786,9 +791,10 @@ def _uwb_ranges(x, P, Q, kq, lz, k0, k1, sa, sb, ib, isc, z, r_var, gate_k, nl_f
                     i, lo, hi = isc[k], scale_lo, scale_hi
                 xi = x[i]
                 pii = _lz_entry(P, Q, kq, lz, i, i) if lz[12][0] != 0 else _lazy_entry(P, Q, kq, i, i)
-                if xi > hi:
+                tol = BOUND_TOL * (hi - lo)  # (a state a pull left on its bound, up to round-off)
+                if xi > hi + tol:
                     zc, rc = lo, pii * (hi - lo) / (xi - hi)
-                elif xi < lo:
+                elif xi < lo - tol:
                     zc, rc = hi, pii * (hi - lo) / (lo - xi)
                 else:
                     continue
