@@ -48,6 +48,12 @@ class ExchangeStats:
     late: int = 0
     delivered: int = 0
 
+    def __iadd__(self, other: ExchangeStats) -> ExchangeStats:
+        """Add ``other``'s counts (the links of several clusters' leads)."""
+        self.sent, self.lost = self.sent + other.sent, self.lost + other.lost
+        self.late, self.delivered = self.late + other.late, self.delivered + other.delivered
+        return self
+
 
 class V2VExchange:
     """Delivers messages to the lead's filter in time-tag order, after latency and loss."""

@@ -21,7 +21,6 @@ renamed when complete, so an interrupted or failed run leaves nothing that looks
 from __future__ import annotations
 
 import contextlib
-import dataclasses
 import gc
 import math
 import shutil
@@ -648,8 +647,7 @@ def _run_scenario(scenario: Scenario, out_dir: Path, *, quiet: bool, replay: boo
                     if rec.membership:
                         membership[key] = [{"t_s": t, "vehicle": v, "change": c} for t, v, c in rec.membership]
                     records_meta.append((cl.name, part))
-                for f in dataclasses.fields(ExchangeStats):
-                    setattr(exchange_stats, f.name, getattr(exchange_stats, f.name) + getattr(cl.exchange.stats, f.name))
+                exchange_stats += cl.exchange.stats
 
         # metrics and outputs -------------------------------------------------------------
         t0 = time.perf_counter()

@@ -1026,6 +1026,10 @@ def _run_study_locked(study: Study, out: Path, scheduler: str | None, workers: i
 _STD_RE = re.compile(r"^(?P<sol>.+?)\.(?P<veh>[^.]+\.\d+)\.(?P<comp>along|across|up)\.std$")
 
 
+#: the fix of a study folder whose tables cannot be used
+RERUN_FIX = "rerun the sweep into DIR (finished runs are kept and re-listed)"
+
+
 def t_interval_half_width(values, confidence: float = 0.95) -> tuple[int, float, float, float]:
     """(n, mean, sample std, half-width of the two-sided Student-t confidence interval of the mean)."""
     import numpy as np
@@ -1060,7 +1064,7 @@ def _grid_columns(runs_dir: Path, df) -> list[str]:
     if missing:
         raise UserError(f"{runs_dir / RUNS_FILE} has no column {missing[0]!r}, a grid column of {SWEEP_FILE}: "
                         "its runs cannot be told apart", field="DIR",
-                        fix="rerun the sweep into DIR (finished runs are kept and re-listed)")
+                        fix=RERUN_FIX)
     return cols
 
 
@@ -1141,11 +1145,11 @@ def write_report(sweep_dir: str | Path, out_dir: str | Path | None = None) -> Re
         df = pd.read_parquet(runs_file)
     except (OSError, ValueError) as exc:  # (pyarrow's ArrowInvalid is a ValueError)
         raise UserError(f"{runs_file} is not readable Parquet ({one_line_error(exc)})", field="DIR",
-                        fix="rerun the sweep into DIR (finished runs are kept and re-listed)") from None
+                        fix=RERUN_FIX) from None
     lacking = [c for c in ("run_id", "status") if c not in df.columns]
     if lacking:
         raise UserError(f"{runs_file} has no column {lacking[0]!r}: it is not a `v2v sweep` table", field="DIR",
-                        fix="rerun the sweep into DIR (finished runs are kept and re-listed)")
+                        fix=RERUN_FIX)
     if df.empty or not (df["status"] == "ok").any():
         n = len(df)
         errors = df["error"].astype(str) if "error" in df else pd.Series([], dtype=str)

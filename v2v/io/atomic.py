@@ -43,15 +43,7 @@ def atomic_write(path: Path, writer: Callable[[Path], None]) -> None:
     ``path``; on any error the temporary file is removed and ``path`` is left as it was."""
     path = Path(path)
     path.parent.mkdir(parents=True, exist_ok=True)
-    fd, tmp = tempfile.mkstemp(prefix=f".{path.name}.", suffix=".tmp", dir=path.parent)
-    os.close(fd)
-    tmp_path = Path(tmp)
-    try:
-        writer(tmp_path)
-        publish(tmp_path, path)
-    except BaseException:
-        tmp_path.unlink(missing_ok=True)
-        raise
+    atomic_write_all([(path, writer)])
 
 
 def atomic_write_all(writes: list[tuple[Path, Callable[[Path], object]]]) -> None:

@@ -189,6 +189,13 @@ def lane_surface_triangles(lanes: Sequence[tuple[float, FloatArray]]) -> FloatAr
     return np.concatenate(tris).reshape(-1, 2) if tris else np.zeros((0, 2))
 
 
+def _time_index(t_s: ArrayLike) -> list[rr.TimeColumn]:
+    """The ``sim_time`` index of rows at ``t_s`` (s): durations in nanoseconds, rounded as
+    ``set_time(duration=t)`` does (a float array would be truncated)."""
+    ns = np.round(np.asarray(t_s, dtype=np.float64) * 1e9).astype(np.int64)
+    return [rr.TimeColumn(bp.TIMELINE, duration=ns.astype("timedelta64[ns]"))]
+
+
 @functools.lru_cache(maxsize=2)
 def static_world(
     lanes: tuple[tuple[float, bytes], ...],
@@ -437,8 +444,7 @@ class _SceneRows:
             return 0
         # nanoseconds rounded as ``set_time(duration=t)`` does (``rerun.time.to_nanos``); a
         # float array given to ``TimeColumn`` would be truncated instead (4.1 s -> 4099999999 ns)
-        ns = np.round(np.asarray(self.times, dtype=np.float64) * 1e9).astype(np.int64)
-        index = [rr.TimeColumn(bp.TIMELINE, duration=ns.astype("timedelta64[ns]"))]
+        index = _time_index(self.times)
         cols: list[rr.ComponentColumn] = []
         if self.per_instance:
             merged: dict[str, object] = {}
@@ -1041,9 +1047,8 @@ class RerunReplayLogger(ReplayLogger):
             raise ValueError(f"log_error_gaps: {len(times)} times for {len(ids)} vehicle ids")
         for v in dict.fromkeys(ids):
             sel = np.array([x == v for x in ids])
-            ns = np.round(times[sel] * 1e9).astype(np.int64).astype("timedelta64[ns]")
-            index = [rr.TimeColumn(bp.TIMELINE, duration=ns)]
-            columns = rr.Clear.columns(is_recursive=[False] * len(ns))
+            index = _time_index(times[sel])
+            columns = rr.Clear.columns(is_recursive=[False] * int(sel.sum()))
             for series in bp.ERROR_SERIES:
                 self._rec.send_columns(bp.error_path(solution, v, series), indexes=index, columns=columns)
 
@@ -1082,8 +1087,7 @@ class RerunReplayLogger(ReplayLogger):
             n = len(times)
             values = np.concatenate(buf.rows)[:, _ERROR_COLUMNS]  # (n, len(ERROR_SERIES))
             # rounded nanoseconds, like the scene columns (a float array would be truncated)
-            ns = np.round(times * 1e9).astype(np.int64).astype("timedelta64[ns]")
-            index = [rr.TimeColumn(bp.TIMELINE, duration=ns)]
+            index = _time_index(times)
             # the column rr.Scalars.columns(scalars=...) builds, without the archetype's overhead
             descriptor = rr.Scalars.descriptor_scalars()
             for j, (path, series) in enumerate(zip(buf.paths, bp.ERROR_SERIES, strict=True)):
